@@ -1,0 +1,24 @@
+//! `gomatch-sim`: command line of the host simulator.
+
+use clap::{Parser, Subcommand};
+
+/// Host simulator of the GoMatch visual localizer.
+#[derive(Parser)]
+#[command(version, about)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Print the version of the core library.
+    Version,
+}
+
+fn main() -> anyhow::Result<()> {
+    match Cli::parse().command {
+        Command::Version => println!("gomatch {}", env!("CARGO_PKG_VERSION")),
+    }
+    Ok(())
+}

@@ -1,0 +1,1 @@
+//! Integration tests across the gomatch crates live in `tests/`.
