@@ -1,4 +1,5 @@
-//! `gomatch-sim`: command line of the host simulator.
+//! `gomatch-sim`: command line of the host simulator. Each subcommand lives in its own
+//! module of the `gomatch_sim` library with an `Args` struct and a `run` function.
 
 use clap::{Parser, Subcommand};
 
