@@ -1,2 +1,11 @@
 //! Host-side simulation and evaluation around the `gomatch` core: the same core code, run on
 //! a desktop machine with files, threads and clocks.
+//!
+//! Scenes: [`scene`] is the in-memory structure-from-motion model that the readers
+//! ([`colmap`], [`bal`], [`bundler`]) produce.
+
+pub mod bal;
+pub mod bundler;
+pub mod colmap;
+pub mod parse;
+pub mod scene;
