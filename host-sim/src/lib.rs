@@ -8,4 +8,5 @@ pub mod bal;
 pub mod bundler;
 pub mod colmap;
 pub mod parse;
+pub mod protocol;
 pub mod scene;

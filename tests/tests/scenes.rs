@@ -159,3 +159,75 @@ fn colmap_text_export_round_trips_a_binary_model() {
         assert!(image.pose.translation_error(&other.pose) < 1e-12);
     }
 }
+
+/// Runs the protocol on a real scene and checks the ground truth against the model's own
+/// triangulation. Real models hold near-duplicate 3D points (tracks that were never
+/// merged), so a ground-truth pair "agrees" when its keypoint triangulates the matched
+/// point or a point within 2 % of its depth from it; and most pairs must join a keypoint
+/// that the model triangulated.
+fn check_protocol(source: SceneSource) {
+    use gomatch_sim::protocol::{scene_samples, ProtocolParams};
+    let scene = source.load().unwrap();
+    let params = ProtocolParams {
+        queries_per_scene: 40,
+        ..ProtocolParams::default()
+    };
+    let samples = scene_samples(&scene, &params);
+    assert!(!samples.is_empty(), "{}: no query", scene.name);
+    let (mut pairs, mut triangulated, mut agreeing) = (0usize, 0usize, 0usize);
+    let (mut keypoints, mut views) = (0usize, 0usize);
+    let mut inlier_rates = Vec::new();
+    for sample in &samples {
+        assert!(sample.views.len() >= params.min_views && sample.views.len() <= params.k);
+        assert!(sample.keypoints.len() <= params.max_keypoints);
+        assert!(sample.views.iter().all(|v| v.image_id != sample.image_id));
+        keypoints += sample.keypoints.len();
+        for view in &sample.views {
+            assert!(view.point_ids.len() <= params.max_points);
+            views += 1;
+            pairs += view.gt_pairs.len();
+            for &(k, p) in &view.gt_pairs {
+                let Some(model_point) = sample.keypoints.point3d[k] else {
+                    continue;
+                };
+                triangulated += 1;
+                let matched = view.xyz[p];
+                let depth = sample.pose.transform(&matched).z;
+                let gap = (scene.points[&model_point].xyz - matched).norm();
+                if model_point == view.point_ids[p] || gap < 0.02 * depth {
+                    agreeing += 1;
+                }
+            }
+            inlier_rates.push(view.gt_pairs.len() as f64 / sample.keypoints.len() as f64);
+        }
+    }
+    let triangulated_share = triangulated as f64 / pairs as f64;
+    let agreement = agreeing as f64 / triangulated as f64;
+    println!(
+        "{}: {} queries, {:.0} keypoints/query, {:.1} views/query, {:.0} GT matches/view, \
+         median inlier rate {:.3}, {:.1} % of GT pairs on triangulated keypoints, {:.1} % of \
+         those agree with the model",
+        scene.name,
+        samples.len(),
+        keypoints as f64 / samples.len() as f64,
+        views as f64 / samples.len() as f64,
+        pairs as f64 / views as f64,
+        median(&mut inlier_rates).unwrap(),
+        100.0 * triangulated_share,
+        100.0 * agreement
+    );
+    assert!(
+        triangulated_share > 0.85,
+        "{}: {triangulated_share}",
+        scene.name
+    );
+    assert!(agreement > 0.95, "{}: agreement {agreement}", scene.name);
+}
+
+#[test]
+fn protocol_ground_truth_agrees_with_the_models_triangulation() {
+    let Some(data) = shared_data() else { return };
+    for scene in ["mouse", "sceaux", "wmv_video0", "wmv_video3"] {
+        check_protocol(SceneSource::Colmap(data.join("colmap").join(scene)));
+    }
+}
