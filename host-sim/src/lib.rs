@@ -2,7 +2,9 @@
 //! a desktop machine with files, threads and clocks.
 //!
 //! Scenes: [`scene`] is the in-memory structure-from-motion model that the readers
-//! ([`colmap`], [`bal`], [`bundler`]) produce.
+//! ([`colmap`], [`bal`], [`bundler`]) and the simulator ([`synthetic`]) produce;
+//! [`protocol`] turns a scene into localization samples with ground truth and scores
+//! results, for both the training set ([`dataset`]) and evaluation.
 
 pub mod bal;
 pub mod bundler;
@@ -10,3 +12,4 @@ pub mod colmap;
 pub mod parse;
 pub mod protocol;
 pub mod scene;
+pub mod synthetic;
