@@ -9,6 +9,7 @@
 pub mod bal;
 pub mod bundler;
 pub mod colmap;
+pub mod dataset;
 pub mod parse;
 pub mod protocol;
 pub mod scene;
