@@ -16,6 +16,19 @@ pub enum Input {
     Pose,
 }
 
+/// Which part of a map an index refers to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MapItem {
+    /// A 3D point.
+    Point,
+    /// A camera (intrinsics).
+    Camera,
+    /// A database view.
+    View,
+    /// The list of observed point indices of the views.
+    ViewPoints,
+}
+
 /// Every way the core can refuse its input.
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[non_exhaustive]
@@ -64,6 +77,45 @@ pub enum Error {
     DegenerateConfiguration,
     /// No pose hypothesis was supported by enough inliers.
     NoPoseFound,
+    /// A map blob shorter than its header or its declared payload.
+    MapTruncated {
+        /// Bytes the blob must have.
+        needed: usize,
+        /// Bytes it has.
+        found: usize,
+    },
+    /// A blob that does not start with the map magic bytes.
+    MapBadMagic,
+    /// A map blob of another format version.
+    MapVersionMismatch {
+        /// The version this code reads.
+        expected: u16,
+        /// The version in the blob.
+        found: u16,
+    },
+    /// A map blob whose payload does not match its checksum.
+    MapChecksumMismatch {
+        /// Checksum stored in the header.
+        stored: u32,
+        /// Checksum of the payload as found.
+        computed: u32,
+    },
+    /// A map payload that does not decode: bad encoding, record sizes, trailing bytes.
+    MapCorrupt,
+    /// An index into a map (or a reference inside it) beyond the end of what it indexes.
+    MapIndexOutOfRange {
+        /// What the index refers to.
+        item: MapItem,
+        /// The index.
+        index: usize,
+        /// The number of items.
+        limit: usize,
+    },
+    /// An image id the map holds no view for.
+    MapUnknownImage {
+        /// The unknown id.
+        image_id: u32,
+    },
 }
 
 /// Result with the core's [`Error`].
@@ -97,6 +149,27 @@ impl fmt::Display for Error {
             Error::AllPointsBehindCamera => write!(f, "all points are at or behind the camera"),
             Error::DegenerateConfiguration => write!(f, "degenerate point configuration"),
             Error::NoPoseFound => write!(f, "no pose hypothesis found"),
+            Error::MapTruncated { needed, found } => {
+                write!(
+                    f,
+                    "map blob truncated: {needed} bytes needed, {found} found"
+                )
+            }
+            Error::MapBadMagic => write!(f, "not a map blob (bad magic bytes)"),
+            Error::MapVersionMismatch { expected, found } => {
+                write!(f, "map format version {found}, expected {expected}")
+            }
+            Error::MapChecksumMismatch { stored, computed } => write!(
+                f,
+                "map checksum mismatch: stored {stored:#010x}, computed {computed:#010x}"
+            ),
+            Error::MapCorrupt => write!(f, "corrupt map payload"),
+            Error::MapIndexOutOfRange { item, index, limit } => {
+                write!(f, "map {item:?} index {index} out of range ({limit} items)")
+            }
+            Error::MapUnknownImage { image_id } => {
+                write!(f, "the map holds no view of image {image_id}")
+            }
         }
     }
 }

@@ -5,13 +5,15 @@
 //! const generic, and every bad input is a typed [`Error`], never a panic.
 //!
 //! One keypoint travels through the modules in this order:
-//! pixel -> bearing vector ([`camera`]) -> pose of the query ([`pose`]).
+//! pixel -> bearing vector ([`camera`]) -> pose of the query ([`pose`]). The database side
+//! is the geometric-only [`map`]: 3D points, database views and their poses.
 #![no_std]
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
 pub mod camera;
 pub mod error;
+pub mod map;
 pub mod pose;
 
 pub use camera::Camera;

@@ -1,2 +1,18 @@
 //! Host-side simulation and evaluation around the `gomatch` core: the same core code, run on
 //! a desktop machine with files, threads and clocks.
+//!
+//! Scenes: [`scene`] is the in-memory structure-from-motion model that the readers
+//! ([`colmap`], [`bal`], [`bundler`]) and the simulator ([`synthetic`]) produce;
+//! [`protocol`] turns a scene into localization samples with ground truth and scores
+//! results, for both the training set ([`dataset`]) and evaluation; [`map`] turns a scene
+//! into the core's geometric-only map blob.
+
+pub mod bal;
+pub mod bundler;
+pub mod colmap;
+pub mod dataset;
+pub mod map;
+pub mod parse;
+pub mod protocol;
+pub mod scene;
+pub mod synthetic;

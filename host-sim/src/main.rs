@@ -15,11 +15,17 @@ struct Cli {
 enum Command {
     /// Print the version of the core library.
     Version,
+    /// Write localization training samples from real and synthetic scenes.
+    Dataset(gomatch_sim::dataset::Args),
+    /// Build or inspect a geometric-only map blob.
+    Map(gomatch_sim::map::Args),
 }
 
 fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Version => println!("gomatch {}", env!("CARGO_PKG_VERSION")),
+        Command::Dataset(args) => gomatch_sim::dataset::run(&args)?,
+        Command::Map(args) => gomatch_sim::map::run(&args)?,
     }
     Ok(())
 }

@@ -1,0 +1,927 @@
+//! Geometric-only map (paper sec. 1 and supp. "Practical Challenges"): 3D points, the
+//! database cameras and poses, and per database view the indices of the points it
+//! observes. No descriptors and no images. Read in place from a byte blob (e.g. in flash)
+//! without copying or allocating; view selection around a coarse prior pose.
+//!
+//! Blob layout (all little-endian):
+//!
+//! ```text
+//! header  16 bytes: magic "GMAP" | format version u16 | reserved u16 = 0
+//!                   | payload length u32 | CRC-32 (IEEE) of the payload u32
+//! payload postcard encoding of four byte strings (varint length + bytes each):
+//!   points       12 bytes per point: x, y, z as f32
+//!   cameras      73 bytes per camera: COLMAP model id u8, width u32, height u32,
+//!                8 parameters f64 in COLMAP order, zero-padded
+//!   views        72 bytes per view: image id u32, camera index u32,
+//!                pose qw qx qy qz tx ty tz f64 (COLMAP world-to-camera),
+//!                first index u32 and count u32 into `view points`
+//!   view points  4 bytes per observation: point index u32
+//! ```
+//!
+//! [`Map::from_bytes`] checks everything once (header, checksum, record sizes, every index,
+//! every camera and pose), so the accessors afterwards cannot meet a bad record.
+
+use nalgebra::UnitQuaternion;
+use serde::ser::{SerializeSeq, SerializeTuple};
+use serde::{Deserialize, Serialize, Serializer};
+
+use crate::camera::{Camera, CameraModel};
+use crate::error::{Error, Input, MapItem, Result};
+use crate::pose::Pose;
+
+/// First four bytes of every map blob.
+pub const MAP_MAGIC: [u8; 4] = *b"GMAP";
+/// Format version this code reads and writes.
+pub const MAP_VERSION: u16 = 1;
+/// Size of the fixed header.
+pub const HEADER_BYTES: usize = 16;
+/// Bytes per stored 3D point.
+pub const POINT_BYTES: usize = 12;
+/// Bytes per stored camera.
+pub const CAMERA_BYTES: usize = 1 + 4 + 4 + 8 * 8;
+/// Bytes per stored view.
+pub const VIEW_BYTES: usize = 4 + 4 + 7 * 8 + 4 + 4;
+/// Bytes per stored observation (point index).
+pub const INDEX_BYTES: usize = 4;
+
+/// CRC-32 (IEEE 802.3, reflected, as in zlib) lookup table.
+const CRC_TABLE: [u32; 256] = {
+    let mut table = [0u32; 256];
+    let mut i = 0;
+    while i < 256 {
+        let mut c = i as u32;
+        let mut bit = 0;
+        while bit < 8 {
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
+            bit += 1;
+        }
+        table[i] = c;
+        i += 1;
+    }
+    table
+};
+
+/// CRC-32 (IEEE) of `bytes`.
+pub fn crc32(bytes: &[u8]) -> u32 {
+    !bytes.iter().fold(!0u32, |crc, &b| {
+        CRC_TABLE[usize::from((crc as u8) ^ b)] ^ (crc >> 8)
+    })
+}
+
+fn array<const N: usize>(bytes: &[u8], offset: usize) -> Option<[u8; N]> {
+    bytes
+        .get(offset..offset.checked_add(N)?)
+        .and_then(|s| s.try_into().ok())
+}
+
+fn u32_at(bytes: &[u8], offset: usize) -> Option<u32> {
+    array(bytes, offset).map(u32::from_le_bytes)
+}
+
+fn f32_at(bytes: &[u8], offset: usize) -> Option<f32> {
+    array(bytes, offset).map(f32::from_le_bytes)
+}
+
+fn f64_at(bytes: &[u8], offset: usize) -> Option<f64> {
+    array(bytes, offset).map(f64::from_le_bytes)
+}
+
+/// The four byte strings of the payload, borrowed from the blob.
+#[derive(Deserialize)]
+struct PayloadRef<'a> {
+    points: &'a [u8],
+    cameras: &'a [u8],
+    views: &'a [u8],
+    view_points: &'a [u8],
+}
+
+/// A database view as stored in the map.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MapView {
+    /// Image id in the source model.
+    pub image_id: u32,
+    /// Index of the view's camera in the map.
+    pub camera_index: u32,
+    /// World-to-camera pose.
+    pub pose: Pose,
+    /// First entry of the view's observations in the view-point list.
+    first: u32,
+    /// Number of observations.
+    count: u32,
+}
+
+/// The point indices a view observes, borrowed from the blob.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ViewPoints<'a> {
+    bytes: &'a [u8],
+}
+
+impl<'a> ViewPoints<'a> {
+    /// Number of observed points.
+    pub fn len(&self) -> usize {
+        self.bytes.len() / INDEX_BYTES
+    }
+
+    /// Whether the view observes no point.
+    pub fn is_empty(&self) -> bool {
+        self.bytes.is_empty()
+    }
+
+    /// The `j`-th observed point index.
+    pub fn get(&self, j: usize) -> Option<u32> {
+        u32_at(self.bytes, j.checked_mul(INDEX_BYTES)?)
+    }
+
+    /// The observed point indices in stored order.
+    pub fn iter(&self) -> impl Iterator<Item = u32> + 'a {
+        self.bytes
+            .chunks_exact(INDEX_BYTES)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+    }
+}
+
+/// A validated map read in place from its blob.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Map<'a> {
+    points: &'a [u8],
+    cameras: &'a [u8],
+    views: &'a [u8],
+    view_points: &'a [u8],
+}
+
+impl<'a> Map<'a> {
+    /// Reads and validates a map blob without copying it. Fails with
+    /// [`Error::MapTruncated`], [`Error::MapBadMagic`], [`Error::MapVersionMismatch`],
+    /// [`Error::MapChecksumMismatch`], [`Error::MapCorrupt`] (undecodable payload, record
+    /// sizes, trailing bytes), [`Error::MapIndexOutOfRange`], [`Error::InvalidIntrinsics`]
+    /// or [`Error::NonFinite`].
+    pub fn from_bytes(blob: &'a [u8]) -> Result<Self> {
+        let header: [u8; HEADER_BYTES] = array(blob, 0).ok_or(Error::MapTruncated {
+            needed: HEADER_BYTES,
+            found: blob.len(),
+        })?;
+        if header[..4] != MAP_MAGIC {
+            return Err(Error::MapBadMagic);
+        }
+        let version = u16::from_le_bytes([header[4], header[5]]);
+        if version != MAP_VERSION {
+            return Err(Error::MapVersionMismatch {
+                expected: MAP_VERSION,
+                found: version,
+            });
+        }
+        let payload_len = u32::from_le_bytes([header[8], header[9], header[10], header[11]]);
+        let stored = u32::from_le_bytes([header[12], header[13], header[14], header[15]]);
+        let payload = &blob[HEADER_BYTES..];
+        let needed = HEADER_BYTES.saturating_add(payload_len as usize);
+        if payload.len() < payload_len as usize {
+            return Err(Error::MapTruncated {
+                needed,
+                found: blob.len(),
+            });
+        }
+        if payload.len() > payload_len as usize || header[6..8] != [0, 0] {
+            return Err(Error::MapCorrupt);
+        }
+        let computed = crc32(payload);
+        if computed != stored {
+            return Err(Error::MapChecksumMismatch { stored, computed });
+        }
+        let (decoded, rest): (PayloadRef<'a>, &[u8]) =
+            postcard::take_from_bytes(payload).map_err(|_| Error::MapCorrupt)?;
+        if !rest.is_empty() {
+            return Err(Error::MapCorrupt);
+        }
+        let map = Map {
+            points: decoded.points,
+            cameras: decoded.cameras,
+            views: decoded.views,
+            view_points: decoded.view_points,
+        };
+        map.validate()?;
+        Ok(map)
+    }
+
+    fn validate(&self) -> Result<()> {
+        let sizes = [
+            (self.points, POINT_BYTES),
+            (self.cameras, CAMERA_BYTES),
+            (self.views, VIEW_BYTES),
+            (self.view_points, INDEX_BYTES),
+        ];
+        if sizes.iter().any(|(bytes, size)| bytes.len() % size != 0) {
+            return Err(Error::MapCorrupt);
+        }
+        for index in 0..self.point_count() {
+            if !self.point(index)?.iter().all(|v| v.is_finite()) {
+                return Err(Error::NonFinite {
+                    input: Input::Points3d,
+                    index,
+                });
+            }
+        }
+        for index in 0..self.camera_count() {
+            self.camera(index)?;
+        }
+        let observations = self.view_points.len() / INDEX_BYTES;
+        for index in 0..self.view_count() {
+            let view = self.view(index)?;
+            if view.camera_index as usize >= self.camera_count() {
+                return Err(Error::MapIndexOutOfRange {
+                    item: MapItem::Camera,
+                    index: view.camera_index as usize,
+                    limit: self.camera_count(),
+                });
+            }
+            let end = view.first as usize + view.count as usize;
+            if end > observations {
+                return Err(Error::MapIndexOutOfRange {
+                    item: MapItem::ViewPoints,
+                    index: end,
+                    limit: observations,
+                });
+            }
+        }
+        let points = self.point_count();
+        let view_points = ViewPoints {
+            bytes: self.view_points,
+        };
+        if let Some(bad) = view_points.iter().find(|&p| p as usize >= points) {
+            return Err(Error::MapIndexOutOfRange {
+                item: MapItem::Point,
+                index: bad as usize,
+                limit: points,
+            });
+        }
+        Ok(())
+    }
+
+    /// Number of 3D points.
+    pub fn point_count(&self) -> usize {
+        self.points.len() / POINT_BYTES
+    }
+
+    /// Number of cameras.
+    pub fn camera_count(&self) -> usize {
+        self.cameras.len() / CAMERA_BYTES
+    }
+
+    /// Number of database views.
+    pub fn view_count(&self) -> usize {
+        self.views.len() / VIEW_BYTES
+    }
+
+    /// Total number of observations (view, point) over all views.
+    pub fn observation_count(&self) -> usize {
+        self.view_points.len() / INDEX_BYTES
+    }
+
+    fn out_of_range(item: MapItem, index: usize, limit: usize) -> Error {
+        Error::MapIndexOutOfRange { item, index, limit }
+    }
+
+    /// World coordinates of point `index`.
+    pub fn point(&self, index: usize) -> Result<[f32; 3]> {
+        let limit = self.point_count();
+        if index >= limit {
+            return Err(Self::out_of_range(MapItem::Point, index, limit));
+        }
+        let read = |axis: usize| f32_at(self.points, index * POINT_BYTES + 4 * axis);
+        match (read(0), read(1), read(2)) {
+            (Some(x), Some(y), Some(z)) => Ok([x, y, z]),
+            _ => Err(Self::out_of_range(MapItem::Point, index, limit)),
+        }
+    }
+
+    /// Camera `index`.
+    pub fn camera(&self, index: usize) -> Result<Camera> {
+        let limit = self.camera_count();
+        if index >= limit {
+            return Err(Self::out_of_range(MapItem::Camera, index, limit));
+        }
+        let base = index * CAMERA_BYTES;
+        let record = self
+            .cameras
+            .get(base..base + CAMERA_BYTES)
+            .ok_or(Self::out_of_range(MapItem::Camera, index, limit))?;
+        let model = CameraModel::from_colmap_id(i32::from(record[0]))?;
+        let width = u32_at(record, 1).ok_or(Error::MapCorrupt)?;
+        let height = u32_at(record, 5).ok_or(Error::MapCorrupt)?;
+        let mut params = [0.0; 8];
+        for (i, p) in params.iter_mut().enumerate() {
+            *p = f64_at(record, 9 + 8 * i).ok_or(Error::MapCorrupt)?;
+        }
+        let count = model.param_count();
+        Camera::from_colmap(model, width, height, &params[..count])
+    }
+
+    /// View `index`.
+    pub fn view(&self, index: usize) -> Result<MapView> {
+        let limit = self.view_count();
+        if index >= limit {
+            return Err(Self::out_of_range(MapItem::View, index, limit));
+        }
+        let base = index * VIEW_BYTES;
+        let record = self
+            .views
+            .get(base..base + VIEW_BYTES)
+            .ok_or(Self::out_of_range(MapItem::View, index, limit))?;
+        let value = |i: usize| f64_at(record, 8 + 8 * i).ok_or(Error::MapCorrupt);
+        let q = [value(0)?, value(1)?, value(2)?, value(3)?];
+        let t = [value(4)?, value(5)?, value(6)?];
+        Ok(MapView {
+            image_id: u32_at(record, 0).ok_or(Error::MapCorrupt)?,
+            camera_index: u32_at(record, 4).ok_or(Error::MapCorrupt)?,
+            pose: Pose::from_colmap(q, t)?,
+            first: u32_at(record, 64).ok_or(Error::MapCorrupt)?,
+            count: u32_at(record, 68).ok_or(Error::MapCorrupt)?,
+        })
+    }
+
+    /// The point indices view `index` observes.
+    pub fn view_points(&self, index: usize) -> Result<ViewPoints<'a>> {
+        let view = self.view(index)?;
+        let start = view.first as usize * INDEX_BYTES;
+        let end = start + view.count as usize * INDEX_BYTES;
+        let bytes = self.view_points.get(start..end).ok_or(Self::out_of_range(
+            MapItem::ViewPoints,
+            end / INDEX_BYTES,
+            self.observation_count(),
+        ))?;
+        Ok(ViewPoints { bytes })
+    }
+
+    /// The `K` views nearest to a coarse prior pose: views whose viewing direction is
+    /// within `max_angle_deg` of the prior's rank first, each group by camera-centre
+    /// distance (ties by index). Returns view indices, best first; fewer than `K` when the
+    /// map has fewer views.
+    pub fn views_near<const K: usize>(
+        &self,
+        prior: &Pose,
+        max_angle_deg: f64,
+    ) -> Result<heapless::Vec<u32, K>> {
+        let centre = prior.center();
+        let direction = prior.viewing_direction();
+        if !centre.iter().chain(direction.iter()).all(|v| v.is_finite()) {
+            return Err(Error::NonFinite {
+                input: Input::Pose,
+                index: 0,
+            });
+        }
+        let min_cos = libm::cos(max_angle_deg.to_radians());
+        // (direction disagrees, distance, view index), kept sorted, best first.
+        let mut best: heapless::Vec<(bool, f64, u32), K> = heapless::Vec::new();
+        for index in 0..self.view_count() {
+            let pose = self.view(index)?.pose;
+            let disagrees = pose.viewing_direction().dot(&direction) < min_cos;
+            let distance = (pose.center() - centre).norm();
+            let key = (disagrees, distance, index as u32);
+            let position = best
+                .iter()
+                .position(|b| (key.0, key.1) < (b.0, b.1))
+                .unwrap_or(best.len());
+            if position < K {
+                if best.is_full() {
+                    best.pop();
+                }
+                // Room was made above and `position <= len`, so this cannot fail.
+                best.insert(position, key)
+                    .map_err(|_| Error::CapacityExceeded {
+                        capacity: K,
+                        requested: K + 1,
+                    })?;
+            }
+        }
+        Ok(best.iter().map(|b| b.2).collect())
+    }
+
+    /// View indices of caller-chosen images (e.g. from image retrieval), in the given
+    /// order. Fails with [`Error::MapUnknownImage`] for an id the map does not hold and
+    /// [`Error::CapacityExceeded`] for more than `K` ids.
+    pub fn views_by_image_id<const K: usize>(
+        &self,
+        image_ids: &[u32],
+    ) -> Result<heapless::Vec<u32, K>> {
+        if image_ids.len() > K {
+            return Err(Error::CapacityExceeded {
+                capacity: K,
+                requested: image_ids.len(),
+            });
+        }
+        let mut views = heapless::Vec::new();
+        for &image_id in image_ids {
+            let mut found = None;
+            for index in 0..self.view_count() {
+                if self.view(index)?.image_id == image_id {
+                    found = Some(index as u32);
+                    break;
+                }
+            }
+            let index = found.ok_or(Error::MapUnknownImage { image_id })?;
+            views.push(index).map_err(|_| Error::CapacityExceeded {
+                capacity: K,
+                requested: image_ids.len(),
+            })?;
+        }
+        Ok(views)
+    }
+}
+
+/// A database view to store: its image id, camera index, pose and observed point indices.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MapViewEntry<'p> {
+    /// Image id in the source model.
+    pub image_id: u32,
+    /// Index into the cameras given to [`encode`].
+    pub camera_index: u32,
+    /// World-to-camera pose.
+    pub pose: Pose,
+    /// Indices into the points given to [`encode`].
+    pub points: &'p [u32],
+}
+
+/// Byte string written element by element: postcard encodes a sequence of `u8` exactly
+/// like a byte string (varint length, then the bytes), so it reads back borrowed.
+struct ByteString<F: Fn(&mut dyn FnMut(u8))> {
+    len: usize,
+    write: F,
+}
+
+impl<F: Fn(&mut dyn FnMut(u8))> Serialize for ByteString<F> {
+    fn serialize<S: Serializer>(&self, serializer: S) -> core::result::Result<S::Ok, S::Error> {
+        let mut seq = serializer.serialize_seq(Some(self.len))?;
+        let mut result = Ok(());
+        (self.write)(&mut |byte| {
+            if result.is_ok() {
+                result = seq.serialize_element(&byte);
+            }
+        });
+        result?;
+        seq.end()
+    }
+}
+
+/// Size of a postcard varint encoding of `value`.
+fn varint_len(mut value: usize) -> usize {
+    let mut len = 1;
+    while value >= 0x80 {
+        value >>= 7;
+        len += 1;
+    }
+    len
+}
+
+/// Size of the blob [`encode`] writes for these inputs.
+pub fn encoded_len(point_count: usize, camera_count: usize, views: &[MapViewEntry<'_>]) -> usize {
+    let observations: usize = views.iter().map(|v| v.points.len()).sum();
+    [
+        point_count * POINT_BYTES,
+        camera_count * CAMERA_BYTES,
+        views.len() * VIEW_BYTES,
+        observations * INDEX_BYTES,
+    ]
+    .iter()
+    .map(|&n| varint_len(n) + n)
+    .sum::<usize>()
+        + HEADER_BYTES
+}
+
+fn check_inputs(points: &[[f32; 3]], cameras: &[Camera], views: &[MapViewEntry<'_>]) -> Result<()> {
+    let too_many = |n: usize| Error::CapacityExceeded {
+        capacity: u32::MAX as usize,
+        requested: n,
+    };
+    let observations: usize = views.iter().map(|v| v.points.len()).sum();
+    for n in [points.len(), cameras.len(), views.len(), observations] {
+        if n > u32::MAX as usize {
+            return Err(too_many(n));
+        }
+    }
+    if let Some(index) = points.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
+        return Err(Error::NonFinite {
+            input: Input::Points3d,
+            index,
+        });
+    }
+    for view in views {
+        if view.camera_index as usize >= cameras.len() {
+            return Err(Error::MapIndexOutOfRange {
+                item: MapItem::Camera,
+                index: view.camera_index as usize,
+                limit: cameras.len(),
+            });
+        }
+        if let Some(&bad) = view.points.iter().find(|&&p| p as usize >= points.len()) {
+            return Err(Error::MapIndexOutOfRange {
+                item: MapItem::Point,
+                index: bad as usize,
+                limit: points.len(),
+            });
+        }
+        let pose_values = view
+            .pose
+            .rotation
+            .matrix()
+            .iter()
+            .chain(view.pose.translation.iter());
+        if !pose_values.copied().all(f64::is_finite) {
+            return Err(Error::NonFinite {
+                input: Input::Pose,
+                index: view.image_id as usize,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Writes a map blob into `out` and returns its length (see the module documentation for
+/// the layout). Fails on out-of-range indices, non-finite values, or an `out` shorter than
+/// [`encoded_len`] ([`Error::CapacityExceeded`]).
+pub fn encode(
+    points: &[[f32; 3]],
+    cameras: &[Camera],
+    views: &[MapViewEntry<'_>],
+    out: &mut [u8],
+) -> Result<usize> {
+    check_inputs(points, cameras, views)?;
+    let needed = encoded_len(points.len(), cameras.len(), views);
+    if needed - HEADER_BYTES > u32::MAX as usize {
+        return Err(Error::CapacityExceeded {
+            capacity: u32::MAX as usize,
+            requested: needed - HEADER_BYTES,
+        });
+    }
+    if out.len() < needed {
+        return Err(Error::CapacityExceeded {
+            capacity: out.len(),
+            requested: needed,
+        });
+    }
+    let point_bytes = ByteString {
+        len: points.len() * POINT_BYTES,
+        write: |emit: &mut dyn FnMut(u8)| {
+            for value in points.iter().flatten() {
+                value.to_le_bytes().into_iter().for_each(&mut *emit);
+            }
+        },
+    };
+    let camera_bytes = ByteString {
+        len: cameras.len() * CAMERA_BYTES,
+        write: |emit: &mut dyn FnMut(u8)| {
+            for camera in cameras {
+                let (params, _) = camera.colmap_params();
+                // COLMAP model ids of the supported models are 0..=4.
+                emit(camera.model.colmap_id() as u8);
+                camera.width.to_le_bytes().into_iter().for_each(&mut *emit);
+                camera.height.to_le_bytes().into_iter().for_each(&mut *emit);
+                for p in params {
+                    p.to_le_bytes().into_iter().for_each(&mut *emit);
+                }
+            }
+        },
+    };
+    let view_bytes = ByteString {
+        len: views.len() * VIEW_BYTES,
+        write: |emit: &mut dyn FnMut(u8)| {
+            let mut first = 0u32;
+            for view in views {
+                let q = UnitQuaternion::from_rotation_matrix(&view.pose.rotation);
+                let t = view.pose.translation;
+                view.image_id.to_le_bytes().into_iter().for_each(&mut *emit);
+                view.camera_index
+                    .to_le_bytes()
+                    .into_iter()
+                    .for_each(&mut *emit);
+                for v in [q.w, q.i, q.j, q.k, t.x, t.y, t.z] {
+                    v.to_le_bytes().into_iter().for_each(&mut *emit);
+                }
+                // Counts were checked to fit in u32 above.
+                let count = view.points.len() as u32;
+                first.to_le_bytes().into_iter().for_each(&mut *emit);
+                count.to_le_bytes().into_iter().for_each(&mut *emit);
+                first += count;
+            }
+        },
+    };
+    let observation_bytes = ByteString {
+        len: views.iter().map(|v| v.points.len()).sum::<usize>() * INDEX_BYTES,
+        write: |emit: &mut dyn FnMut(u8)| {
+            for index in views.iter().flat_map(|v| v.points) {
+                index.to_le_bytes().into_iter().for_each(&mut *emit);
+            }
+        },
+    };
+    let (header, payload) = out.split_at_mut(HEADER_BYTES);
+    let capacity = payload.len();
+    let payload_len = {
+        let tuple = Payload(&point_bytes, &camera_bytes, &view_bytes, &observation_bytes);
+        postcard::to_slice(&tuple, payload)
+            .map_err(|_| Error::CapacityExceeded {
+                capacity,
+                requested: needed - HEADER_BYTES,
+            })?
+            .len()
+    };
+    let checksum = crc32(&payload[..payload_len]);
+    header[..4].copy_from_slice(&MAP_MAGIC);
+    header[4..6].copy_from_slice(&MAP_VERSION.to_le_bytes());
+    header[6..8].copy_from_slice(&[0, 0]);
+    header[8..12].copy_from_slice(&(payload_len as u32).to_le_bytes());
+    header[12..16].copy_from_slice(&checksum.to_le_bytes());
+    Ok(HEADER_BYTES + payload_len)
+}
+
+/// The payload's four byte strings in order.
+struct Payload<'x, A, B, C, D>(&'x A, &'x B, &'x C, &'x D);
+
+impl<A: Serialize, B: Serialize, C: Serialize, D: Serialize> Serialize for Payload<'_, A, B, C, D> {
+    fn serialize<S: Serializer>(&self, serializer: S) -> core::result::Result<S::Ok, S::Error> {
+        let mut tuple = serializer.serialize_tuple(4)?;
+        tuple.serialize_element(self.0)?;
+        tuple.serialize_element(self.1)?;
+        tuple.serialize_element(self.2)?;
+        tuple.serialize_element(self.3)?;
+        tuple.end()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Rotation3, Vector3};
+
+    const POINTS: [[f32; 3]; 4] = [
+        [0.0, 0.0, 5.0],
+        [1.0, 0.0, 5.0],
+        [0.0, 1.0, 6.0],
+        [-1.0, -1.0, 7.0],
+    ];
+
+    fn cameras() -> [Camera; 2] {
+        [
+            Camera::from_colmap(
+                CameraModel::SimpleRadial,
+                640,
+                480,
+                &[500.0, 320.0, 240.0, -0.1],
+            )
+            .unwrap(),
+            Camera::from_colmap(
+                CameraModel::OpenCv,
+                1920,
+                1080,
+                &[1500.0, 1490.0, 960.0, 540.0, -0.1, 0.02, 0.001, -0.0005],
+            )
+            .unwrap(),
+        ]
+    }
+
+    fn pose(x: f64, yaw: f64) -> Pose {
+        Pose::new(
+            Rotation3::from_euler_angles(0.0, yaw, 0.0),
+            Vector3::new(x, 0.0, 0.0),
+        )
+    }
+
+    const FIRST: [u32; 3] = [0, 1, 2];
+    const SECOND: [u32; 2] = [3, 1];
+
+    fn views() -> [MapViewEntry<'static>; 3] {
+        [
+            MapViewEntry {
+                image_id: 10,
+                camera_index: 0,
+                pose: pose(0.0, 0.0),
+                points: &FIRST,
+            },
+            MapViewEntry {
+                image_id: 20,
+                camera_index: 1,
+                pose: pose(-3.0, 0.1),
+                points: &SECOND,
+            },
+            MapViewEntry {
+                image_id: 30,
+                camera_index: 0,
+                pose: pose(1.0, 3.0),
+                points: &[],
+            },
+        ]
+    }
+
+    fn encode_sample(buffer: &mut [u8]) -> usize {
+        encode(&POINTS, &cameras(), &views(), buffer).unwrap()
+    }
+
+    #[test]
+    fn crc32_matches_the_standard_check_value() {
+        assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
+        assert_eq!(crc32(b""), 0);
+    }
+
+    #[test]
+    fn map_round_trips_in_place() {
+        let mut buffer = [0u8; 1024];
+        let len = encode_sample(&mut buffer);
+        assert_eq!(len, encoded_len(POINTS.len(), 2, &views()));
+        let map = Map::from_bytes(&buffer[..len]).unwrap();
+        assert_eq!(
+            (
+                map.point_count(),
+                map.camera_count(),
+                map.view_count(),
+                map.observation_count()
+            ),
+            (4, 2, 3, 5)
+        );
+        for (i, p) in POINTS.iter().enumerate() {
+            assert_eq!(map.point(i).unwrap(), *p);
+        }
+        assert_eq!(map.camera(0).unwrap(), cameras()[0]);
+        assert_eq!(map.camera(1).unwrap(), cameras()[1]);
+        for (i, entry) in views().iter().enumerate() {
+            let view = map.view(i).unwrap();
+            assert_eq!(
+                (view.image_id, view.camera_index),
+                (entry.image_id, entry.camera_index)
+            );
+            assert!((view.pose.rotation.matrix() - entry.pose.rotation.matrix()).amax() < 1e-12);
+            assert_eq!(view.pose.translation, entry.pose.translation);
+            let points = map.view_points(i).unwrap();
+            assert_eq!(points.len(), entry.points.len());
+            assert!(points.iter().eq(entry.points.iter().copied()));
+        }
+        assert_eq!(map.view_points(1).unwrap().get(1), Some(1));
+        assert_eq!(map.view_points(1).unwrap().get(2), None);
+    }
+
+    #[test]
+    fn accessors_report_out_of_range_indices() {
+        let mut buffer = [0u8; 1024];
+        let len = encode_sample(&mut buffer);
+        let map = Map::from_bytes(&buffer[..len]).unwrap();
+        assert_eq!(
+            map.point(4),
+            Err(Error::MapIndexOutOfRange {
+                item: MapItem::Point,
+                index: 4,
+                limit: 4
+            })
+        );
+        assert!(map.point(usize::MAX).is_err());
+        assert!(map.camera(2).is_err());
+        assert!(map.view(usize::MAX).is_err());
+        assert!(map.view_points(3).is_err());
+    }
+
+    #[test]
+    fn bad_blobs_are_typed_errors() {
+        let mut buffer = [0u8; 1024];
+        let len = encode_sample(&mut buffer);
+        let blob = &buffer[..len];
+        assert_eq!(
+            Map::from_bytes(&blob[..10]),
+            Err(Error::MapTruncated {
+                needed: 16,
+                found: 10
+            })
+        );
+        assert_eq!(
+            Map::from_bytes(&blob[..len - 1]),
+            Err(Error::MapTruncated {
+                needed: len,
+                found: len - 1
+            })
+        );
+        let mut copy = [0u8; 1024];
+        copy[..len].copy_from_slice(blob);
+        copy[0] = b'X';
+        assert_eq!(Map::from_bytes(&copy[..len]), Err(Error::MapBadMagic));
+        copy[..len].copy_from_slice(blob);
+        copy[4] = 2;
+        assert_eq!(
+            Map::from_bytes(&copy[..len]),
+            Err(Error::MapVersionMismatch {
+                expected: 1,
+                found: 2
+            })
+        );
+        copy[..len].copy_from_slice(blob);
+        copy[len - 3] ^= 0x40;
+        assert!(matches!(
+            Map::from_bytes(&copy[..len]),
+            Err(Error::MapChecksumMismatch { .. })
+        ));
+        assert_eq!(Map::from_bytes(&copy[..len + 1]), Err(Error::MapCorrupt));
+    }
+
+    /// Rewrites the checksum so that a deliberately corrupted payload gets past it.
+    fn reseal(blob: &mut [u8]) {
+        let checksum = crc32(&blob[HEADER_BYTES..]);
+        blob[12..16].copy_from_slice(&checksum.to_le_bytes());
+    }
+
+    #[test]
+    fn sealed_but_inconsistent_payloads_are_refused() {
+        let mut buffer = [0u8; 1024];
+        let len = encode_sample(&mut buffer);
+        // The last observation index (point 1 of the second view) becomes 9.
+        buffer[len - 4..len].copy_from_slice(&9u32.to_le_bytes());
+        reseal(&mut buffer[..len]);
+        assert_eq!(
+            Map::from_bytes(&buffer[..len]),
+            Err(Error::MapIndexOutOfRange {
+                item: MapItem::Point,
+                index: 9,
+                limit: 4
+            })
+        );
+        let mut buffer = [0u8; 1024];
+        let len = encode_sample(&mut buffer);
+        // First byte of the payload: the points' length varint (48) claims one more byte.
+        assert_eq!(buffer[HEADER_BYTES], 48);
+        buffer[HEADER_BYTES] = 49;
+        reseal(&mut buffer[..len]);
+        assert_eq!(Map::from_bytes(&buffer[..len]), Err(Error::MapCorrupt));
+    }
+
+    #[test]
+    fn encode_refuses_bad_inputs_and_small_buffers() {
+        let mut buffer = [0u8; 1024];
+        let bad_point = [MapViewEntry {
+            points: &[7],
+            ..views()[0]
+        }];
+        assert_eq!(
+            encode(&POINTS, &cameras(), &bad_point, &mut buffer),
+            Err(Error::MapIndexOutOfRange {
+                item: MapItem::Point,
+                index: 7,
+                limit: 4
+            })
+        );
+        let bad_camera = [MapViewEntry {
+            camera_index: 2,
+            ..views()[0]
+        }];
+        assert!(encode(&POINTS, &cameras(), &bad_camera, &mut buffer).is_err());
+        let nan = [[f32::NAN, 0.0, 0.0]];
+        assert_eq!(
+            encode(&nan, &cameras(), &[], &mut buffer),
+            Err(Error::NonFinite {
+                input: Input::Points3d,
+                index: 0
+            })
+        );
+        let needed = encoded_len(POINTS.len(), 2, &views());
+        assert_eq!(
+            encode(&POINTS, &cameras(), &views(), &mut buffer[..needed - 1]),
+            Err(Error::CapacityExceeded {
+                capacity: needed - 1,
+                requested: needed
+            })
+        );
+    }
+
+    #[test]
+    fn views_near_rank_by_direction_then_distance() {
+        let mut buffer = [0u8; 1024];
+        let len = encode_sample(&mut buffer);
+        let map = Map::from_bytes(&buffer[..len]).unwrap();
+        // A prior at the first view's pose: view 0 (distance 0), then view 1 (looks 0.1 rad
+        // away, centre 3 units off); view 2 looks backwards and comes last.
+        let best: heapless::Vec<u32, 3> = map.views_near(&pose(0.0, 0.0), 30.0).unwrap();
+        assert_eq!(best.as_slice(), &[0, 1, 2]);
+        let two: heapless::Vec<u32, 2> = map.views_near(&pose(0.0, 0.0), 30.0).unwrap();
+        assert_eq!(two.as_slice(), &[0, 1]);
+        // With a 1-degree cone only view 0 agrees; the others follow by distance.
+        let strict: heapless::Vec<u32, 3> = map.views_near(&pose(0.0, 0.0), 1.0).unwrap();
+        assert_eq!(strict.as_slice(), &[0, 2, 1]);
+        let bad = Pose::new(Rotation3::identity(), Vector3::new(f64::NAN, 0.0, 0.0));
+        assert!(map.views_near::<3>(&bad, 30.0).is_err());
+    }
+
+    #[test]
+    fn views_by_image_id_maps_ids_to_indices() {
+        let mut buffer = [0u8; 1024];
+        let len = encode_sample(&mut buffer);
+        let map = Map::from_bytes(&buffer[..len]).unwrap();
+        let views: heapless::Vec<u32, 4> = map.views_by_image_id(&[30, 10]).unwrap();
+        assert_eq!(views.as_slice(), &[2, 0]);
+        assert_eq!(
+            map.views_by_image_id::<4>(&[10, 11]),
+            Err(Error::MapUnknownImage { image_id: 11 })
+        );
+        assert_eq!(
+            map.views_by_image_id::<1>(&[10, 20]),
+            Err(Error::CapacityExceeded {
+                capacity: 1,
+                requested: 2
+            })
+        );
+    }
+}

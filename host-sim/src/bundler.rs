@@ -1,0 +1,126 @@
+//! Bundler v0.3 `bundle.out` reader. Same camera model as BAL (see [`crate::bal`] for the
+//! exact conversion), with the rotation stored as a 3x3 matrix; cameras with `f = 0` were
+//! not placed by Bundler and are skipped together with their observations.
+
+use std::path::Path;
+
+use anyhow::Context;
+use nalgebra::{Matrix3, Vector3};
+
+use crate::bal::{assemble_scene, BundlerCamera, Observation};
+use crate::parse::{FormatError, Tokens};
+use crate::scene::{Scene, SceneSource};
+
+/// First line of every Bundler v0.3 file.
+const HEADER: &str = "# Bundle file v0.3";
+
+/// Reads a Bundler v0.3 `bundle.out`.
+pub fn read_bundler(path: &Path) -> anyhow::Result<Scene> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let name = SceneSource::Bundler(path.to_path_buf()).name();
+    parse_bundler(&text, name).with_context(|| format!("parsing {}", path.display()))
+}
+
+/// Parses the text of a Bundler v0.3 file: header, `num_cameras num_points`, per camera
+/// `f k1 k2`, three rows of `R` and `t`, per point its position, colour and view list
+/// `n (camera key x y)^n`. Observation keys (SIFT indices) are not kept: each image's
+/// keypoints are its observations in file order.
+pub fn parse_bundler(text: &str, name: String) -> Result<Scene, FormatError> {
+    if text.lines().next().map(str::trim) != Some(HEADER) {
+        return Err(FormatError::Syntax {
+            line: 1,
+            message: format!("expected the header {HEADER:?}"),
+        });
+    }
+    let mut tokens = Tokens::new(text, 1);
+    let camera_count: usize = tokens.parse("the camera count")?;
+    let point_count: usize = tokens.parse("the point count")?;
+    for count in [camera_count, point_count] {
+        if count > text.len() {
+            return Err(FormatError::OutOfRange {
+                what: "declared record count",
+                value: count as u64,
+                limit: text.len() as u64,
+            });
+        }
+    }
+    let mut cameras = Vec::with_capacity(camera_count);
+    for _ in 0..camera_count {
+        let [focal, k1, k2] = tokens.f64s::<3>("f k1 k2")?;
+        let rows = tokens.f64s::<9>("a rotation entry")?;
+        let translation = Vector3::from(tokens.f64s::<3>("a translation entry")?);
+        cameras.push((focal != 0.0).then(|| BundlerCamera {
+            rotation: Matrix3::from_row_slice(&rows),
+            translation,
+            focal,
+            k1,
+            k2,
+        }));
+    }
+    let mut points = Vec::with_capacity(point_count);
+    let mut observations = Vec::new();
+    for point in 0..point_count {
+        points.push(Vector3::from(tokens.f64s::<3>("a point coordinate")?));
+        tokens.f64s::<3>("a colour channel")?;
+        let views: usize = tokens.parse("the view count")?;
+        for _ in 0..views {
+            let camera: usize = tokens.parse("a view's camera index")?;
+            let _key: u64 = tokens.parse("a view's keypoint index")?;
+            let position = tokens.f64s::<2>("a view's coordinates")?;
+            observations.push(Observation {
+                camera,
+                point,
+                position,
+            });
+        }
+    }
+    tokens.finish()?;
+    assemble_scene(name, &cameras, &points, &observations)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const TINY: &str = "# Bundle file v0.3\n2 1\n\
+        500 0 0\n1 0 0\n0 1 0\n0 0 1\n0 0 -5\n\
+        0 0 0\n0 0 0\n0 0 0\n0 0 0\n0 0 0\n\
+        0 0 0\n255 0 0\n2 0 17 3.5 -2.0 1 4 0 0\n";
+
+    #[test]
+    fn unplaced_cameras_are_skipped_with_their_observations() {
+        let scene = parse_bundler(TINY, "bundler/tiny".into()).unwrap();
+        scene.validate().unwrap();
+        assert_eq!(scene.images.len(), 1);
+        assert_eq!(scene.points[&0].track.len(), 1);
+        assert_eq!(scene.images[&0].keypoints[0].pixel, [3.5, 2.0]);
+        // The point at the origin seen by a camera 5 units in front projects at the centre.
+        let bearing = scene.images[&0]
+            .pose
+            .bearing(&scene.points[&0].xyz, 0)
+            .unwrap();
+        assert_eq!(bearing, [0.0, 0.0]);
+    }
+
+    #[test]
+    fn malformed_files_are_typed_errors() {
+        assert!(matches!(
+            parse_bundler("# Bundle file v0.2\n0 0\n", "x".into()),
+            Err(FormatError::Syntax { line: 1, .. })
+        ));
+        let truncated = &TINY[..TINY.len() - 8];
+        assert!(matches!(
+            parse_bundler(truncated, "x".into()),
+            Err(FormatError::Syntax { .. })
+        ));
+        let bad_camera = TINY.replace("2 0 17 3.5", "2 5 17 3.5");
+        assert!(matches!(
+            parse_bundler(&bad_camera, "x".into()),
+            Err(FormatError::OutOfRange {
+                what: "camera index",
+                ..
+            })
+        ));
+    }
+}

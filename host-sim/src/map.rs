@@ -1,0 +1,271 @@
+//! `gomatch-sim map`: builds the core's geometric-only map blob ([`gomatch::map`]) from a
+//! structure-from-motion model, and reports its storage next to what visual descriptors
+//! for the same points would cost (paper supp. Table 1: a visual-matching map stores
+//! descriptors on top of the same 3D points and cameras).
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::{Args as ClapArgs, Parser, Subcommand};
+use gomatch::map::{
+    encode, encoded_len, Map, MapViewEntry, CAMERA_BYTES, HEADER_BYTES, INDEX_BYTES, POINT_BYTES,
+    VIEW_BYTES,
+};
+
+use crate::scene::{Scene, SceneSource};
+
+/// Bytes of one SIFT descriptor (128 x u8).
+pub const SIFT_DESCRIPTOR_BYTES: usize = 128;
+/// Bytes of one SuperPoint descriptor (256 x f32).
+pub const SUPERPOINT_DESCRIPTOR_BYTES: usize = 256 * 4;
+
+/// Build or inspect a geometric-only map blob.
+#[derive(Debug, Clone, Parser)]
+pub struct Args {
+    /// What to do.
+    #[command(subcommand)]
+    pub command: MapCommand,
+}
+
+/// The `map` subcommands.
+#[derive(Debug, Clone, Subcommand)]
+pub enum MapCommand {
+    /// Build a map blob from a COLMAP, BAL or Bundler model.
+    Build(BuildArgs),
+    /// Print the storage breakdown of a map blob.
+    Stats(StatsArgs),
+}
+
+/// Arguments of `map build`.
+#[derive(Debug, Clone, ClapArgs)]
+pub struct BuildArgs {
+    /// The model to convert.
+    #[command(flatten)]
+    pub source: ModelArgs,
+    /// Output map blob.
+    #[arg(long)]
+    pub output: PathBuf,
+}
+
+/// Exactly one model source.
+#[derive(Debug, Clone, ClapArgs)]
+#[group(required = true, multiple = false)]
+pub struct ModelArgs {
+    /// COLMAP sparse model folder.
+    #[arg(long)]
+    pub colmap: Option<PathBuf>,
+    /// BAL problem file.
+    #[arg(long)]
+    pub bal: Option<PathBuf>,
+    /// Bundler v0.3 bundle.out file.
+    #[arg(long)]
+    pub bundler: Option<PathBuf>,
+}
+
+impl ModelArgs {
+    /// The selected source.
+    pub fn source(&self) -> anyhow::Result<SceneSource> {
+        match (&self.colmap, &self.bal, &self.bundler) {
+            (Some(dir), None, None) => Ok(SceneSource::Colmap(dir.clone())),
+            (None, Some(file), None) => Ok(SceneSource::Bal(file.clone())),
+            (None, None, Some(file)) => Ok(SceneSource::Bundler(file.clone())),
+            _ => anyhow::bail!("give exactly one of --colmap, --bal, --bundler"),
+        }
+    }
+}
+
+/// Arguments of `map stats`.
+#[derive(Debug, Clone, ClapArgs)]
+pub struct StatsArgs {
+    /// Map blob to inspect.
+    pub map: PathBuf,
+}
+
+/// Encodes a scene as a map blob: every 3D point with at least one observation (in id
+/// order), every camera (in id order), and every image as a view with the distinct points
+/// it observes.
+pub fn build_map(scene: &Scene) -> anyhow::Result<Vec<u8>> {
+    let point_ids: Vec<u64> = scene
+        .points
+        .values()
+        .filter(|p| !p.track.is_empty())
+        .map(|p| p.id)
+        .collect();
+    let point_index: BTreeMap<u64, u32> = point_ids
+        .iter()
+        .enumerate()
+        .map(|(i, &id)| Ok((id, u32::try_from(i)?)))
+        .collect::<anyhow::Result<_>>()?;
+    let points: Vec<[f32; 3]> = point_ids
+        .iter()
+        .map(|id| {
+            let xyz = scene.points[id].xyz;
+            [xyz.x as f32, xyz.y as f32, xyz.z as f32]
+        })
+        .collect();
+    let camera_index: BTreeMap<u32, u32> = scene
+        .cameras
+        .keys()
+        .enumerate()
+        .map(|(i, &id)| Ok((id, u32::try_from(i)?)))
+        .collect::<anyhow::Result<_>>()?;
+    let cameras: Vec<gomatch::Camera> = scene.cameras.values().copied().collect();
+    let observed: Vec<Vec<u32>> = scene
+        .images
+        .values()
+        .map(|image| {
+            let mut seen = BTreeSet::new();
+            image
+                .keypoints
+                .iter()
+                .filter_map(|k| k.point3d.and_then(|id| point_index.get(&id).copied()))
+                .filter(|&i| seen.insert(i))
+                .collect()
+        })
+        .collect();
+    let views = scene
+        .images
+        .values()
+        .zip(&observed)
+        .map(|(image, points)| {
+            Ok(MapViewEntry {
+                image_id: image.id,
+                camera_index: *camera_index
+                    .get(&image.camera_id)
+                    .with_context(|| format!("image {} has no camera", image.id))?,
+                pose: image.pose,
+                points,
+            })
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let mut blob = vec![0u8; encoded_len(points.len(), cameras.len(), &views)];
+    let len = encode(&points, &cameras, &views, &mut blob).context("encoding the map")?;
+    blob.truncate(len);
+    Ok(blob)
+}
+
+/// Storage of a map blob by part, and the descriptor storage a visual map would add.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StorageBreakdown {
+    /// 3D points.
+    pub points: usize,
+    /// Cameras.
+    pub cameras: usize,
+    /// Views.
+    pub views: usize,
+    /// View-point observations.
+    pub observations: usize,
+    /// Bytes of point coordinates.
+    pub point_bytes: usize,
+    /// Bytes of camera records.
+    pub camera_bytes: usize,
+    /// Bytes of view records (poses).
+    pub view_bytes: usize,
+    /// Bytes of the observation indices.
+    pub observation_bytes: usize,
+    /// Header and encoding overhead (magic, version, checksum, lengths).
+    pub overhead_bytes: usize,
+    /// Whole blob.
+    pub total_bytes: usize,
+}
+
+impl StorageBreakdown {
+    /// Breakdown of a decoded map whose blob has `total_bytes`.
+    pub fn of(map: &Map<'_>, total_bytes: usize) -> Self {
+        let point_bytes = map.point_count() * POINT_BYTES;
+        let camera_bytes = map.camera_count() * CAMERA_BYTES;
+        let view_bytes = map.view_count() * VIEW_BYTES;
+        let observation_bytes = map.observation_count() * INDEX_BYTES;
+        Self {
+            points: map.point_count(),
+            cameras: map.camera_count(),
+            views: map.view_count(),
+            observations: map.observation_count(),
+            point_bytes,
+            camera_bytes,
+            view_bytes,
+            observation_bytes,
+            overhead_bytes: total_bytes
+                - (point_bytes + camera_bytes + view_bytes + observation_bytes),
+            total_bytes,
+        }
+    }
+}
+
+fn human(bytes: usize) -> String {
+    let b = bytes as f64;
+    if b >= 1024.0 * 1024.0 * 1024.0 {
+        format!("{:.2} GiB", b / (1024.0 * 1024.0 * 1024.0))
+    } else if b >= 1024.0 * 1024.0 {
+        format!("{:.2} MiB", b / (1024.0 * 1024.0))
+    } else if b >= 1024.0 {
+        format!("{:.1} KiB", b / 1024.0)
+    } else {
+        format!("{bytes} B")
+    }
+}
+
+fn print_stats(s: &StorageBreakdown) {
+    let share = |bytes: usize| 100.0 * bytes as f64 / s.total_bytes.max(1) as f64;
+    println!(
+        "geometric-only map: {} points, {} cameras, {} views, {} observations",
+        s.points, s.cameras, s.views, s.observations
+    );
+    for (part, bytes) in [
+        ("3D points (3 x f32)", s.point_bytes),
+        ("cameras", s.camera_bytes),
+        ("views (pose, ranges)", s.view_bytes),
+        ("observations (u32)", s.observation_bytes),
+        (
+            &*format!("header {HEADER_BYTES} B + lengths"),
+            s.overhead_bytes,
+        ),
+    ] {
+        println!("  {part:<24} {:>12} {:>6.1} %", human(bytes), share(bytes));
+    }
+    println!("  {:<24} {:>12}", "total", human(s.total_bytes));
+    println!("descriptors a visual-matching map adds for the same points:");
+    for (name, size) in [
+        ("SIFT (128 x u8)", SIFT_DESCRIPTOR_BYTES),
+        ("SuperPoint (256 x f32)", SUPERPOINT_DESCRIPTOR_BYTES),
+    ] {
+        let per_point = s.points * size;
+        let per_observation = s.observations * size;
+        println!(
+            "  {name:<24} one per point {:>12} ({:.1}x the map), one per observation {:>12} ({:.1}x)",
+            human(per_point),
+            per_point as f64 / s.total_bytes.max(1) as f64,
+            human(per_observation),
+            per_observation as f64 / s.total_bytes.max(1) as f64
+        );
+    }
+}
+
+/// Runs `map build` or `map stats`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    match &args.command {
+        MapCommand::Build(build) => {
+            let scene = build.source.source()?.load()?;
+            let blob = build_map(&scene)?;
+            std::fs::write(&build.output, &blob)
+                .with_context(|| format!("writing {}", build.output.display()))?;
+            println!(
+                "wrote {} ({}) from {}",
+                build.output.display(),
+                human(blob.len()),
+                scene.name
+            );
+            let map = Map::from_bytes(&blob).context("reading back the map")?;
+            print_stats(&StorageBreakdown::of(&map, blob.len()));
+        }
+        MapCommand::Stats(stats) => {
+            let blob = std::fs::read(&stats.map)
+                .with_context(|| format!("reading {}", stats.map.display()))?;
+            let map = Map::from_bytes(&blob)
+                .with_context(|| format!("decoding {}", stats.map.display()))?;
+            print_stats(&StorageBreakdown::of(&map, blob.len()));
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,897 @@
+//! The localization protocol of the paper's MegaDepth experiments (supp. "Dataset Details",
+//! "Ground Truth Correspondences", "Reprojection Error AUC"), applicable to any [`Scene`].
+//! The dataset command and the evaluation both build their samples here, so training and
+//! evaluation see exactly the same queries, views and ground truth.
+//!
+//! Per query image:
+//! - keypoints: all its 2D points, triangulated or not (the untriangulated ones are the
+//!   real outliers), exact duplicates removed, converted to bearing vectors through its
+//!   camera (pixel -> `K^-1` -> undistortion), at most `max_keypoints` by a seeded subsample;
+//! - co-visible views: the `k` other images sharing the most 3D points with it, among those
+//!   whose overlap (shared points / points seen by the query) is at least `min_overlap`;
+//!   queries with fewer than `min_views` such views are dropped;
+//! - per view: the 3D points it observes (in front of it), at most `max_points` by a seeded
+//!   subsample, as bearing vectors in that view (paper eq. 1);
+//! - ground truth: the view's points projected with the true query pose onto the query's
+//!   normalised plane, matched to the keypoints by mutual nearest neighbours closer than
+//!   `gt_threshold`.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+
+use gomatch::{Camera, Pose};
+use nalgebra::Vector3;
+use rand::SeedableRng;
+use rand_pcg::Pcg64Mcg;
+use serde::Serialize;
+
+use crate::scene::{Image, ImageId, PointId, Scene};
+
+/// Seed stream of the query selection; image ids are `u32`, so no per-image stream
+/// (`[image_id]`) can equal it.
+const QUERY_SELECTION_STREAM: u64 = u64::MAX;
+
+/// Parameters of the protocol (paper values by default).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct ProtocolParams {
+    /// Co-visible views per query.
+    pub k: usize,
+    /// Minimum overlap of a co-visible view (shared 3D points / 3D points of the query).
+    pub min_overlap: f64,
+    /// Queries with fewer co-visible views are dropped.
+    pub min_views: usize,
+    /// Mutual-nearest-neighbour distance under which a keypoint and a projected 3D point
+    /// are a ground-truth match, on the normalised image plane.
+    pub gt_threshold: f64,
+    /// Cap on query keypoints.
+    pub max_keypoints: usize,
+    /// Cap on the 3D points of one view.
+    pub max_points: usize,
+    /// Queries sampled per scene.
+    pub queries_per_scene: usize,
+    /// Seed of every random choice.
+    pub seed: u64,
+}
+
+impl Default for ProtocolParams {
+    fn default() -> Self {
+        Self {
+            k: 10,
+            min_overlap: 0.35,
+            min_views: 3,
+            gt_threshold: 1e-3,
+            max_keypoints: 1024,
+            max_points: 1024,
+            queries_per_scene: 500,
+            seed: 0,
+        }
+    }
+}
+
+/// The keypoints of a query as the matcher sees them.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct QueryKeypoints {
+    /// Pixel positions.
+    pub pixels: Vec<[f64; 2]>,
+    /// Bearing vectors `(x/z, y/z)` on the normalised image plane.
+    pub bearings: Vec<[f64; 2]>,
+    /// The 3D point the source model triangulated at each keypoint (diagnostics only: the
+    /// ground truth is geometric and does not use it).
+    pub point3d: Vec<Option<PointId>>,
+}
+
+impl QueryKeypoints {
+    /// Number of keypoints.
+    pub fn len(&self) -> usize {
+        self.bearings.len()
+    }
+
+    /// Whether there is no keypoint.
+    pub fn is_empty(&self) -> bool {
+        self.bearings.is_empty()
+    }
+}
+
+/// One co-visible database view of a query, with its points and the ground truth.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ViewSample {
+    /// The database image.
+    pub image_id: ImageId,
+    /// Shared 3D points / 3D points of the query.
+    pub overlap: f64,
+    /// Ids of the view's 3D points.
+    pub point_ids: Vec<PointId>,
+    /// World coordinates of the view's 3D points.
+    pub xyz: Vec<Vector3<f64>>,
+    /// Bearing vectors of the points in the view's camera frame (paper eq. 1).
+    pub bearings: Vec<[f64; 2]>,
+    /// Ground-truth matches `(keypoint index, point index)`, sorted by keypoint.
+    pub gt_pairs: Vec<(usize, usize)>,
+}
+
+impl ViewSample {
+    /// Per query keypoint, the index of its ground-truth point in this view, or -1.
+    pub fn match_vector(&self, keypoint_count: usize) -> Vec<i64> {
+        let mut matches = vec![-1; keypoint_count];
+        for &(keypoint, point) in &self.gt_pairs {
+            if let Some(slot) = matches.get_mut(keypoint) {
+                *slot = point as i64;
+            }
+        }
+        matches
+    }
+}
+
+/// Everything the protocol defines for one query image.
+#[derive(Debug, Clone, PartialEq)]
+pub struct QuerySample {
+    /// The query image.
+    pub image_id: ImageId,
+    /// Its camera.
+    pub camera: Camera,
+    /// Its true world-to-camera pose.
+    pub pose: Pose,
+    /// Its keypoints.
+    pub keypoints: QueryKeypoints,
+    /// Its co-visible views, most overlapping first.
+    pub views: Vec<ViewSample>,
+}
+
+impl QuerySample {
+    /// The 3D points involved in a ground-truth match in any view, each once (by id): the
+    /// points the reprojection-error AUC is measured on.
+    pub fn gt_inlier_points(&self) -> Vec<Vector3<f64>> {
+        let mut seen = BTreeSet::new();
+        let mut points = Vec::new();
+        for view in &self.views {
+            for &(_, point) in &view.gt_pairs {
+                if seen.insert(view.point_ids[point]) {
+                    points.push(view.xyz[point]);
+                }
+            }
+        }
+        points
+    }
+}
+
+/// A co-visible view candidate of a query.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CoVisibleView {
+    /// The database image.
+    pub image_id: ImageId,
+    /// 3D points seen by both.
+    pub shared_points: usize,
+    /// `shared_points` / 3D points seen by the query.
+    pub overlap: f64,
+}
+
+/// Distinct 3D points an image observes, in keypoint order.
+fn observed_points(image: &Image) -> Vec<PointId> {
+    let mut seen = BTreeSet::new();
+    image
+        .keypoints
+        .iter()
+        .filter_map(|k| k.point3d)
+        .filter(|id| seen.insert(*id))
+        .collect()
+}
+
+/// The top-`k` other images ranked by 3D points shared with `query` (ties by id), among
+/// those with overlap at least `min_overlap`. The query itself is never a view.
+pub fn co_visible_views(
+    scene: &Scene,
+    query: &Image,
+    params: &ProtocolParams,
+) -> Vec<CoVisibleView> {
+    let points = observed_points(query);
+    if points.is_empty() {
+        return Vec::new();
+    }
+    let mut shared: BTreeMap<ImageId, usize> = BTreeMap::new();
+    for point_id in &points {
+        let Some(point) = scene.points.get(point_id) else {
+            continue;
+        };
+        let observers: BTreeSet<ImageId> = point.track.iter().map(|e| e.image_id).collect();
+        for image_id in observers {
+            if image_id != query.id {
+                *shared.entry(image_id).or_default() += 1;
+            }
+        }
+    }
+    let mut views: Vec<CoVisibleView> = shared
+        .into_iter()
+        .map(|(image_id, shared_points)| CoVisibleView {
+            image_id,
+            shared_points,
+            overlap: shared_points as f64 / points.len() as f64,
+        })
+        .filter(|v| v.overlap >= params.min_overlap && scene.images.contains_key(&v.image_id))
+        .collect();
+    views.sort_by(|a, b| {
+        b.shared_points
+            .cmp(&a.shared_points)
+            .then(a.image_id.cmp(&b.image_id))
+    });
+    views.truncate(params.k);
+    views
+}
+
+/// The query images of a scene: a seeded sample of `queries_per_scene` among the images
+/// with at least `min_views` co-visible views, in increasing id order.
+pub fn select_queries(scene: &Scene, params: &ProtocolParams) -> Vec<ImageId> {
+    let eligible: Vec<ImageId> = scene
+        .images
+        .values()
+        .filter(|image| co_visible_views(scene, image, params).len() >= params.min_views.max(1))
+        .map(|image| image.id)
+        .collect();
+    let mut rng = Pcg64Mcg::seed_from_u64(derive_seed(params.seed, &[QUERY_SELECTION_STREAM]));
+    let mut chosen = subsample(&mut rng, eligible.len(), params.queries_per_scene);
+    chosen.sort_unstable();
+    chosen.into_iter().map(|i| eligible[i]).collect()
+}
+
+/// Every query sample of a scene (see [`select_queries`] and [`query_sample`]).
+pub fn scene_samples(scene: &Scene, params: &ProtocolParams) -> Vec<QuerySample> {
+    select_queries(scene, params)
+        .into_iter()
+        .filter_map(|id| query_sample(scene, id, params))
+        .collect()
+}
+
+/// The protocol's sample for one query image; `None` when the image or its camera does not
+/// exist. Every random choice is seeded by `params.seed` and the image ids involved, so a
+/// query's sample does not depend on which other queries were selected.
+pub fn query_sample(
+    scene: &Scene,
+    image_id: ImageId,
+    params: &ProtocolParams,
+) -> Option<QuerySample> {
+    let image = scene.images.get(&image_id)?;
+    let camera = *scene.camera_of(image)?;
+    let keypoints = query_keypoints(image, &camera, params);
+    let views = co_visible_views(scene, image, params)
+        .into_iter()
+        .filter_map(|view| view_sample(scene, image, &keypoints, view, params))
+        .collect();
+    Some(QuerySample {
+        image_id,
+        camera,
+        pose: image.pose,
+        keypoints,
+        views,
+    })
+}
+
+/// All keypoints of the image, exact duplicates merged (the first position kept, with the
+/// 3D point of whichever copy has one), converted to bearing vectors (keypoints whose
+/// undistortion fails are dropped), and capped by a seeded subsample that keeps their
+/// original order.
+fn query_keypoints(image: &Image, camera: &Camera, params: &ProtocolParams) -> QueryKeypoints {
+    let mut first_of: HashMap<(u64, u64), usize> = HashMap::new();
+    let mut unique: Vec<(usize, Option<PointId>)> = Vec::new();
+    for (index, keypoint) in image.keypoints.iter().enumerate() {
+        let key = (keypoint.pixel[0].to_bits(), keypoint.pixel[1].to_bits());
+        match first_of.get(&key) {
+            Some(&slot) => {
+                let annotation = &mut unique[slot].1;
+                *annotation = annotation.or(keypoint.point3d);
+            }
+            None => {
+                first_of.insert(key, unique.len());
+                unique.push((index, keypoint.point3d));
+            }
+        }
+    }
+    let usable: Vec<([f64; 2], [f64; 2], Option<PointId>)> = unique
+        .into_iter()
+        .filter_map(|(index, point3d)| {
+            let pixel = image.keypoints[index].pixel;
+            let bearing = camera.pixel_to_bearing(pixel).ok()?;
+            Some((pixel, bearing, point3d))
+        })
+        .collect();
+    let mut rng = Pcg64Mcg::seed_from_u64(derive_seed(params.seed, &[u64::from(image.id)]));
+    let mut chosen = subsample(&mut rng, usable.len(), params.max_keypoints);
+    chosen.sort_unstable();
+    let mut keypoints = QueryKeypoints::default();
+    for i in chosen {
+        let (pixel, bearing, point3d) = usable[i];
+        keypoints.pixels.push(pixel);
+        keypoints.bearings.push(bearing);
+        keypoints.point3d.push(point3d);
+    }
+    keypoints
+}
+
+/// The view's 3D points in front of it, capped by a seeded subsample, as bearing vectors
+/// in the view, with the ground truth against the query keypoints.
+fn view_sample(
+    scene: &Scene,
+    query: &Image,
+    keypoints: &QueryKeypoints,
+    view: CoVisibleView,
+    params: &ProtocolParams,
+) -> Option<ViewSample> {
+    let image = scene.images.get(&view.image_id)?;
+    let visible: Vec<(PointId, Vector3<f64>, [f64; 2])> = observed_points(image)
+        .into_iter()
+        .filter_map(|id| {
+            let xyz = scene.points.get(&id)?.xyz;
+            let bearing = image.pose.bearing(&xyz, 0).ok()?;
+            Some((id, xyz, bearing))
+        })
+        .collect();
+    let seed = derive_seed(
+        params.seed,
+        &[u64::from(query.id), u64::from(view.image_id)],
+    );
+    let mut rng = Pcg64Mcg::seed_from_u64(seed);
+    let mut chosen = subsample(&mut rng, visible.len(), params.max_points);
+    chosen.sort_unstable();
+    let mut sample = ViewSample {
+        image_id: view.image_id,
+        overlap: view.overlap,
+        point_ids: Vec::with_capacity(chosen.len()),
+        xyz: Vec::with_capacity(chosen.len()),
+        bearings: Vec::with_capacity(chosen.len()),
+        gt_pairs: Vec::new(),
+    };
+    for i in chosen {
+        let (id, xyz, bearing) = visible[i];
+        sample.point_ids.push(id);
+        sample.xyz.push(xyz);
+        sample.bearings.push(bearing);
+    }
+    let projected: Vec<Option<[f64; 2]>> = sample
+        .xyz
+        .iter()
+        .map(|x| query.pose.bearing(x, 0).ok())
+        .collect();
+    sample.gt_pairs =
+        mutual_nearest_neighbours(&keypoints.bearings, &projected, params.gt_threshold);
+    Some(sample)
+}
+
+/// Seeded choice of `min(amount, length)` distinct indices in `0..length` (unordered).
+fn subsample(rng: &mut Pcg64Mcg, length: usize, amount: usize) -> Vec<usize> {
+    if amount >= length {
+        return (0..length).collect();
+    }
+    rand::seq::index::sample(rng, length, amount).into_vec()
+}
+
+/// Mixes a seed with a list of integers into a new seed (SplitMix64 finaliser per part),
+/// so that every random choice has its own reproducible stream.
+pub fn derive_seed(seed: u64, parts: &[u64]) -> u64 {
+    let mix = |mut z: u64| {
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    };
+    parts
+        .iter()
+        .fold(mix(seed.wrapping_add(0x9e37_79b9_7f4a_7c15)), |acc, &p| {
+            mix(acc ^ p.wrapping_add(0x9e37_79b9_7f4a_7c15))
+        })
+}
+
+/// Pairs `(i, j)` where `b[j]` is the nearest neighbour of `a[i]` among `b`, `a[i]` the
+/// nearest of `b[j]` among `a`, and their distance is below `threshold` (paper supp.
+/// "Ground Truth Correspondences"). `None` entries of `b` (points behind the camera) never
+/// match. Ties go to the lower index. Sorted by `i`.
+///
+/// Only neighbours within `threshold` can form such a pair, and a point's nearest
+/// neighbour is within `threshold` whenever any pair of it qualifies, so the search runs on
+/// a grid of `threshold`-sized cells: O(N) instead of O(N^2).
+pub fn mutual_nearest_neighbours(
+    a: &[[f64; 2]],
+    b: &[Option<[f64; 2]>],
+    threshold: f64,
+) -> Vec<(usize, usize)> {
+    if !(threshold > 0.0 && threshold.is_finite()) {
+        return Vec::new();
+    }
+    let b_points: Vec<(usize, [f64; 2])> = b
+        .iter()
+        .enumerate()
+        .filter_map(|(j, p)| {
+            p.filter(|q| q.iter().all(|v| v.is_finite()))
+                .map(|q| (j, q))
+        })
+        .collect();
+    let a_points: Vec<(usize, [f64; 2])> = a
+        .iter()
+        .copied()
+        .enumerate()
+        .filter(|(_, q)| q.iter().all(|v| v.is_finite()))
+        .collect();
+    let b_grid = Grid::new(&b_points, threshold);
+    let a_grid = Grid::new(&a_points, threshold);
+    a_points
+        .iter()
+        .filter_map(|&(i, p)| {
+            let (j, q) = b_grid.nearest_within(p, threshold)?;
+            let (back, _) = a_grid.nearest_within(q, threshold)?;
+            (back == i).then_some((i, j))
+        })
+        .collect()
+}
+
+/// Uniform grid over 2D points for fixed-radius nearest-neighbour queries.
+struct Grid<'a> {
+    cell: f64,
+    points: &'a [(usize, [f64; 2])],
+    cells: HashMap<(i64, i64), Vec<usize>>,
+}
+
+impl<'a> Grid<'a> {
+    fn new(points: &'a [(usize, [f64; 2])], cell: f64) -> Self {
+        let mut cells: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
+        for (slot, (_, p)) in points.iter().enumerate() {
+            cells.entry(Self::key(p, cell)).or_default().push(slot);
+        }
+        Self {
+            cell,
+            points,
+            cells,
+        }
+    }
+
+    fn key(p: &[f64; 2], cell: f64) -> (i64, i64) {
+        // `as` saturates for huge coordinates, which only merges far-away cells.
+        ((p[0] / cell).floor() as i64, (p[1] / cell).floor() as i64)
+    }
+
+    /// The point (original index, position) nearest to `p` at a distance below `radius`
+    /// (`radius` <= the cell size); ties go to the lower original index.
+    fn nearest_within(&self, p: [f64; 2], radius: f64) -> Option<(usize, [f64; 2])> {
+        let (cx, cy) = Self::key(&p, self.cell);
+        let mut best: Option<(usize, f64, [f64; 2])> = None;
+        for dx in -1..=1 {
+            for dy in -1..=1 {
+                let key = (cx.saturating_add(dx), cy.saturating_add(dy));
+                for &slot in self.cells.get(&key).into_iter().flatten() {
+                    let (index, q) = self.points[slot];
+                    let d = ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2)).sqrt();
+                    let better = match best {
+                        None => true,
+                        Some((bi, bd, _)) => d < bd || (d == bd && index < bi),
+                    };
+                    if d < radius && better {
+                        best = Some((index, d, q));
+                    }
+                }
+            }
+        }
+        best.map(|(index, _, q)| (index, q))
+    }
+}
+
+/// Mean reprojection error of one query (supp. "Reprojection Error AUC"): the mean pixel
+/// distance between the ground-truth 3D points projected with the true pose and with the
+/// estimated pose, through the query camera. Infinite for a failed query (`None`), for a
+/// query without ground-truth points, and when a point cannot be projected with the
+/// estimate (behind the estimated camera).
+pub fn query_reprojection_error(
+    camera: &Camera,
+    true_pose: &Pose,
+    estimate: Option<&Pose>,
+    points: &[Vector3<f64>],
+) -> f64 {
+    let Some(estimate) = estimate else {
+        return f64::INFINITY;
+    };
+    if points.is_empty() {
+        return f64::INFINITY;
+    }
+    let project = |pose: &Pose, x: &Vector3<f64>| {
+        pose.bearing(x, 0)
+            .ok()
+            .and_then(|b| camera.bearing_to_pixel(b).ok())
+    };
+    let mut total = 0.0;
+    for x in points {
+        let (Some(truth), Some(estimated)) = (project(true_pose, x), project(estimate, x)) else {
+            return f64::INFINITY;
+        };
+        total += ((truth[0] - estimated[0]).powi(2) + (truth[1] - estimated[1]).powi(2)).sqrt();
+    }
+    total / points.len() as f64
+}
+
+/// Area under the cumulative recall curve of per-query errors up to each threshold,
+/// divided by the threshold, in percent (supp. "Reprojection Error AUC"). The curve starts
+/// at (0, 0), rises linearly from one sorted error to the next (the i-th smallest error
+/// has recall i/N), and stays flat from the last error below the threshold to the
+/// threshold; its area is taken with the trapezoidal rule. Failed queries count with an
+/// infinite error (NaN is treated as infinite); no query gives 0.
+pub fn error_auc(errors: &[f64], thresholds: &[f64]) -> Vec<f64> {
+    let n = errors.len();
+    if n == 0 {
+        return vec![0.0; thresholds.len()];
+    }
+    let mut sorted: Vec<f64> = errors
+        .iter()
+        .map(|&e| if e.is_nan() { f64::INFINITY } else { e })
+        .collect();
+    sorted.sort_by(f64::total_cmp);
+    thresholds
+        .iter()
+        .map(|&threshold| {
+            let (mut area, mut last_error, mut last_recall) = (0.0, 0.0, 0.0);
+            for (i, &error) in sorted.iter().enumerate() {
+                if error >= threshold {
+                    break;
+                }
+                let recall = (i + 1) as f64 / n as f64;
+                area += (error - last_error) * (recall + last_recall) * 0.5;
+                (last_error, last_recall) = (error, recall);
+            }
+            area += (threshold - last_error) * last_recall;
+            100.0 * area / threshold
+        })
+        .collect()
+}
+
+/// Quantiles with linear interpolation between order statistics (position `q (n - 1)`);
+/// `None` for no value.
+pub fn quantiles(values: &[f64], qs: &[f64]) -> Option<Vec<f64>> {
+    if values.is_empty() {
+        return None;
+    }
+    let mut sorted = values.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    let last = sorted.len() - 1;
+    Some(
+        qs.iter()
+            .map(|&q| {
+                let position = q.clamp(0.0, 1.0) * last as f64;
+                let low = position.floor() as usize;
+                let high = position.ceil() as usize;
+                sorted[low] + (sorted[high] - sorted[low]) * (position - low as f64)
+            })
+            .collect(),
+    )
+}
+
+/// Quartiles (25/50/75 %) of the pose errors of the localized queries.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PoseErrorQuartiles {
+    /// Rotation error in degrees.
+    pub rotation_deg: [f64; 3],
+    /// Translation error (distance between translation vectors, scene units).
+    pub translation: [f64; 3],
+    /// Queries with a pose estimate.
+    pub localized: usize,
+    /// All queries.
+    pub queries: usize,
+}
+
+/// Pose-error quartiles over the queries that have an estimate; `None` when none has.
+pub fn pose_error_quartiles(results: &[(Pose, Option<Pose>)]) -> Option<PoseErrorQuartiles> {
+    let (rotations, translations): (Vec<f64>, Vec<f64>) = results
+        .iter()
+        .filter_map(|(truth, estimate)| {
+            estimate.map(|e| (e.rotation_error_deg(truth), e.translation_error(truth)))
+        })
+        .unzip();
+    let q = [0.25, 0.5, 0.75];
+    let rotation = quantiles(&rotations, &q)?;
+    let translation = quantiles(&translations, &q)?;
+    Some(PoseErrorQuartiles {
+        rotation_deg: [rotation[0], rotation[1], rotation[2]],
+        translation: [translation[0], translation[1], translation[2]],
+        localized: rotations.len(),
+        queries: results.len(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::{Keypoint, Point3d, TrackElement};
+    use gomatch::camera::CameraModel;
+    use nalgebra::Rotation3;
+    use rand::RngExt;
+
+    fn close(a: f64, b: f64) -> bool {
+        (a - b).abs() < 1e-9
+    }
+
+    #[test]
+    fn auc_matches_hand_computed_curves() {
+        // One query at 0.5 px: area 0.5 * 0.5 * 1 + 0.5 * 1 = 0.75 of the 1 px square.
+        assert!(close(error_auc(&[0.5], &[1.0])[0], 75.0));
+        // A failed query halves the recall: 0.5 * 0.5 * 0.5 + 0.5 * 0.5 = 0.375.
+        assert!(close(error_auc(&[0.5, f64::INFINITY], &[1.0])[0], 37.5));
+        assert!(close(error_auc(&[0.5, f64::NAN], &[1.0])[0], 37.5));
+        // Errors 0, 2, 4: at 1 px only the zero counts (1/3 from 0 to 1); at 5 px the
+        // trapezoids are 0 + 2 * (1/3 + 2/3) / 2 + 2 * (2/3 + 1) / 2 + 1 * 1 = 11/3.
+        let auc = error_auc(&[4.0, 0.0, 2.0], &[1.0, 5.0]);
+        assert!(close(auc[0], 100.0 / 3.0));
+        assert!(close(auc[1], 100.0 * 11.0 / 15.0));
+        // An error exactly at the threshold does not count below it.
+        assert!(close(error_auc(&[1.0], &[1.0])[0], 0.0));
+        assert_eq!(error_auc(&[], &[1.0, 5.0]), vec![0.0, 0.0]);
+        assert!(close(error_auc(&[0.0, 0.0], &[10.0])[0], 100.0));
+    }
+
+    #[test]
+    fn quantiles_interpolate_linearly() {
+        let q = quantiles(&[4.0, 1.0, 3.0, 2.0], &[0.0, 0.25, 0.5, 1.0]).unwrap();
+        assert_eq!(q, vec![1.0, 1.75, 2.5, 4.0]);
+        assert_eq!(quantiles(&[], &[0.5]), None);
+    }
+
+    #[test]
+    fn pose_quartiles_skip_failed_queries() {
+        let truth = Pose::identity();
+        let shifted = |x: f64| Some(Pose::new(Rotation3::identity(), Vector3::new(x, 0.0, 0.0)));
+        let results = [(truth, shifted(1.0)), (truth, None), (truth, shifted(3.0))];
+        let quartiles = pose_error_quartiles(&results).unwrap();
+        assert_eq!(quartiles.translation, [1.5, 2.0, 2.5]);
+        assert_eq!(quartiles.rotation_deg, [0.0; 3]);
+        assert_eq!((quartiles.localized, quartiles.queries), (2, 3));
+        assert_eq!(pose_error_quartiles(&[(truth, None)]), None);
+    }
+
+    #[test]
+    fn reprojection_error_compares_true_and_estimated_projections() {
+        let camera =
+            Camera::from_colmap(CameraModel::SimplePinhole, 640, 480, &[100.0, 320.0, 240.0])
+                .unwrap();
+        let truth = Pose::identity();
+        // Shifting the camera by 0.01 along x moves points at depth 1 by 1 px.
+        let estimate = Pose::new(Rotation3::identity(), Vector3::new(0.01, 0.0, 0.0));
+        let points = [Vector3::new(0.0, 0.0, 1.0), Vector3::new(0.1, 0.2, 1.0)];
+        let error = query_reprojection_error(&camera, &truth, Some(&estimate), &points);
+        assert!(close(error, 1.0));
+        assert_eq!(
+            query_reprojection_error(&camera, &truth, None, &points),
+            f64::INFINITY
+        );
+        assert_eq!(
+            query_reprojection_error(&camera, &truth, Some(&estimate), &[]),
+            f64::INFINITY
+        );
+        let behind = Pose::new(Rotation3::identity(), Vector3::new(0.0, 0.0, -2.0));
+        assert_eq!(
+            query_reprojection_error(&camera, &truth, Some(&behind), &points),
+            f64::INFINITY
+        );
+    }
+
+    #[test]
+    fn mutual_nearest_neighbours_need_both_directions_and_the_threshold() {
+        let a = [[0.0, 0.0], [0.0005, 0.0], [1.0, 1.0]];
+        let b = [
+            Some([0.0004, 0.0]),
+            None,
+            Some([1.0, 1.0009]),
+            Some([5.0, 5.0]),
+        ];
+        assert_eq!(
+            mutual_nearest_neighbours(&a, &b, 1e-3),
+            vec![(1, 0), (2, 2)]
+        );
+        assert_eq!(mutual_nearest_neighbours(&a, &b, 5e-4), vec![(1, 0)]);
+        // Exact ties go to the lower index in both directions.
+        let tied = mutual_nearest_neighbours(&[[0.0, 0.0], [0.0, 0.0]], &[Some([0.0, 0.0])], 1e-3);
+        assert_eq!(tied, vec![(0, 0)]);
+    }
+
+    /// O(N^2) definition of the ground truth.
+    fn brute_force_mutual(
+        a: &[[f64; 2]],
+        b: &[Option<[f64; 2]>],
+        threshold: f64,
+    ) -> Vec<(usize, usize)> {
+        let distance =
+            |p: [f64; 2], q: [f64; 2]| ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2)).sqrt();
+        let nearest_b = |p: [f64; 2]| {
+            b.iter()
+                .enumerate()
+                .filter_map(|(j, q)| q.map(|q| (j, distance(p, q))))
+                .min_by(|x, y| x.1.total_cmp(&y.1).then(x.0.cmp(&y.0)))
+        };
+        let nearest_a = |q: [f64; 2]| {
+            a.iter()
+                .enumerate()
+                .map(|(i, &p)| (i, distance(p, q)))
+                .min_by(|x, y| x.1.total_cmp(&y.1).then(x.0.cmp(&y.0)))
+        };
+        a.iter()
+            .enumerate()
+            .filter_map(|(i, &p)| {
+                let (j, d) = nearest_b(p)?;
+                let q = b[j]?;
+                (d < threshold && nearest_a(q)?.0 == i).then_some((i, j))
+            })
+            .collect()
+    }
+
+    #[test]
+    fn grid_search_equals_the_brute_force_definition() {
+        let mut rng = Pcg64Mcg::seed_from_u64(7);
+        for _ in 0..20 {
+            // Points on a coarse lattice around a few centres create near and exact ties.
+            let point = |rng: &mut Pcg64Mcg| {
+                let centre = f64::from(rng.random_range(0..4u8)) * 0.01;
+                [
+                    centre + f64::from(rng.random_range(0..40u8)) * 1.25e-4,
+                    f64::from(rng.random_range(0..40u8)) * 1.25e-4,
+                ]
+            };
+            let a: Vec<[f64; 2]> = (0..300).map(|_| point(&mut rng)).collect();
+            let b: Vec<Option<[f64; 2]>> = (0..300)
+                .map(|_| {
+                    let p = point(&mut rng);
+                    rng.random_bool(0.9).then_some(p)
+                })
+                .collect();
+            assert_eq!(
+                mutual_nearest_neighbours(&a, &b, 1e-3),
+                brute_force_mutual(&a, &b, 1e-3)
+            );
+        }
+    }
+
+    /// Four images around points at depth ~5; image `i` observes the points listed for it,
+    /// each keypoint exactly at the projection, plus one untriangulated keypoint.
+    fn tracks_scene(observations: &[(ImageId, &[PointId])]) -> Scene {
+        let camera =
+            Camera::from_colmap(CameraModel::SimplePinhole, 640, 480, &[500.0, 320.0, 240.0])
+                .unwrap();
+        let mut scene = Scene {
+            name: "tracks".into(),
+            ..Scene::default()
+        };
+        scene.cameras.insert(1, camera);
+        for id in 0..20u64 {
+            let xyz = Vector3::new(
+                (id % 5) as f64 * 0.3 - 0.6,
+                (id / 5) as f64 * 0.3 - 0.45,
+                5.0,
+            );
+            scene.points.insert(
+                id,
+                Point3d {
+                    id,
+                    xyz,
+                    track: Vec::new(),
+                },
+            );
+        }
+        for &(image_id, points) in observations {
+            let pose = Pose::new(
+                Rotation3::from_euler_angles(0.0, 0.02 * f64::from(image_id), 0.0),
+                Vector3::new(0.1 * f64::from(image_id), 0.0, 0.0),
+            );
+            let mut keypoints = vec![Keypoint {
+                pixel: [1.0, 1.0],
+                point3d: None,
+            }];
+            for &point_id in points {
+                let point = scene.points.get_mut(&point_id).unwrap();
+                let pixel = camera
+                    .bearing_to_pixel(pose.bearing(&point.xyz, 0).unwrap())
+                    .unwrap();
+                point.track.push(TrackElement {
+                    image_id,
+                    keypoint_index: keypoints.len() as u32,
+                });
+                keypoints.push(Keypoint {
+                    pixel,
+                    point3d: Some(point_id),
+                });
+            }
+            scene.images.insert(
+                image_id,
+                Image {
+                    id: image_id,
+                    name: format!("{image_id}"),
+                    camera_id: 1,
+                    pose,
+                    keypoints,
+                },
+            );
+        }
+        scene.validate().unwrap();
+        scene
+    }
+
+    #[test]
+    fn co_visible_views_rank_by_shared_points_above_the_overlap() {
+        let scene = tracks_scene(&[
+            (1, &[0, 1, 2, 3, 4, 5, 6, 7, 8, 9]),
+            (2, &[0, 1, 2, 3, 4, 5, 6, 7]),
+            (3, &[0, 1, 2, 3, 10, 11]),
+            (4, &[0, 1, 2, 12, 13]),
+        ]);
+        let params = ProtocolParams {
+            k: 2,
+            ..ProtocolParams::default()
+        };
+        let views = co_visible_views(&scene, &scene.images[&1], &params);
+        let ids: Vec<ImageId> = views.iter().map(|v| v.image_id).collect();
+        // Overlaps 0.8, 0.4, 0.3: image 4 is under 35 %, and k = 2 keeps two.
+        assert_eq!(ids, vec![2, 3]);
+        assert!(close(views[0].overlap, 0.8) && close(views[1].overlap, 0.4));
+        let three = ProtocolParams {
+            k: 10,
+            min_views: 3,
+            ..ProtocolParams::default()
+        };
+        // Image 1 has only two views over 35 %; images 2, 3 and 4 see the other three
+        // with overlaps of at least 50 %.
+        assert_eq!(select_queries(&scene, &three), vec![2, 3, 4]);
+    }
+
+    #[test]
+    fn ground_truth_recovers_exact_projections_and_nothing_with_a_wrong_pose() {
+        let scene = tracks_scene(&[
+            (1, &[0, 1, 2, 3, 4, 5, 6, 7, 8, 9]),
+            (2, &[0, 1, 2, 3, 4, 5, 6, 7]),
+            (3, &[0, 1, 2, 3, 4, 10, 11]),
+        ]);
+        let params = ProtocolParams {
+            min_views: 1,
+            ..ProtocolParams::default()
+        };
+        let sample = query_sample(&scene, 1, &params).unwrap();
+        assert_eq!(sample.keypoints.len(), 11);
+        let view = &sample.views[0];
+        assert_eq!(view.image_id, 2);
+        assert_eq!(view.gt_pairs.len(), 8);
+        for &(keypoint, point) in &view.gt_pairs {
+            assert_eq!(
+                sample.keypoints.point3d[keypoint],
+                Some(view.point_ids[point])
+            );
+        }
+        let matches = view.match_vector(sample.keypoints.len());
+        assert_eq!(matches[0], -1, "the untriangulated keypoint has no match");
+        assert_eq!(sample.gt_inlier_points().len(), 8);
+
+        let mut moved = scene.clone();
+        moved.images.get_mut(&1).unwrap().pose.translation.x += 0.05;
+        let wrong = query_sample(&moved, 1, &params).unwrap();
+        assert!(wrong.views.iter().all(|v| v.gt_pairs.is_empty()));
+    }
+
+    #[test]
+    fn caps_and_duplicates_are_applied_reproducibly() {
+        let scene = tracks_scene(&[
+            (1, &[0, 1, 2, 3, 4, 5, 6, 7, 8, 9]),
+            (2, &[0, 1, 2, 3, 4, 5, 6, 7]),
+        ]);
+        let mut duplicated = scene.clone();
+        let image = duplicated.images.get_mut(&1).unwrap();
+        let copy = Keypoint {
+            point3d: None,
+            ..image.keypoints[3]
+        };
+        image.keypoints.push(copy);
+        let params = ProtocolParams {
+            min_views: 1,
+            max_keypoints: 6,
+            max_points: 5,
+            ..ProtocolParams::default()
+        };
+        let full = ProtocolParams {
+            min_views: 1,
+            ..ProtocolParams::default()
+        };
+        assert_eq!(
+            query_sample(&duplicated, 1, &full).unwrap().keypoints.len(),
+            11
+        );
+        let first = query_sample(&duplicated, 1, &params).unwrap();
+        assert_eq!(first.keypoints.len(), 6);
+        assert_eq!(first.views[0].point_ids.len(), 5);
+        assert_eq!(query_sample(&duplicated, 1, &params).unwrap(), first);
+        let other_seed = ProtocolParams { seed: 1, ..params };
+        assert_ne!(query_sample(&duplicated, 1, &other_seed).unwrap(), first);
+    }
+}
