@@ -64,6 +64,11 @@ pub enum Error {
     DegenerateConfiguration,
     /// No pose hypothesis was supported by enough inliers.
     NoPoseFound,
+    /// A configuration value is out of its valid range.
+    InvalidConfig {
+        /// Name of the offending parameter.
+        parameter: &'static str,
+    },
 }
 
 /// Result with the core's [`Error`].
@@ -97,6 +102,9 @@ impl fmt::Display for Error {
             Error::AllPointsBehindCamera => write!(f, "all points are at or behind the camera"),
             Error::DegenerateConfiguration => write!(f, "degenerate point configuration"),
             Error::NoPoseFound => write!(f, "no pose hypothesis found"),
+            Error::InvalidConfig { parameter } => {
+                write!(f, "invalid configuration value: {parameter}")
+            }
         }
     }
 }

@@ -5,15 +5,21 @@
 //! const generic, and every bad input is a typed [`Error`], never a panic.
 //!
 //! One keypoint travels through the modules in this order:
-//! pixel -> bearing vector ([`camera`]) -> pose of the query ([`pose`]).
+//! pixel -> bearing vector ([`camera`]) -> RANSAC-PnP inlier ([`p3p`], [`ransac`],
+//! [`refine`]) -> pose of the query ([`pose`]).
 #![no_std]
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
 pub mod camera;
 pub mod error;
+pub mod p3p;
 pub mod pose;
+pub mod ransac;
+pub mod refine;
+pub mod rng;
 
 pub use camera::Camera;
 pub use error::{Error, Result};
 pub use pose::Pose;
+pub use ransac::{estimate_pose, PnpEstimate, PnpWorkspace, RansacConfig};

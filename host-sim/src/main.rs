@@ -15,11 +15,14 @@ struct Cli {
 enum Command {
     /// Print the version of the core library.
     Version,
+    /// Run RANSAC-PnP on the shared synthetic sets and compare with PoseLib.
+    Pnp(gomatch_sim::pnp::Args),
 }
 
 fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Version => println!("gomatch {}", env!("CARGO_PKG_VERSION")),
+        Command::Pnp(args) => gomatch_sim::pnp::run(&args)?,
     }
     Ok(())
 }

@@ -1,0 +1,535 @@
+//! Robust absolute pose from 2D-3D matches: LO-RANSAC around the P3P solver with MSAC
+//! scoring, then Levenberg-Marquardt on the inliers (paper supp. "Pose Estimation"; the
+//! reference used OpenCV's RANSAC-PnP, this stage follows PoseLib's LO-RANSAC instead).
+//!
+//! One iteration draws three distinct correspondences with a seeded [`SplitMix64`], solves
+//! P3P and scores every solution with the MSAC cost `sum min(r^2, threshold^2)` of the
+//! reprojection errors on the normalised image plane (points behind the camera cost
+//! `threshold^2`). A hypothesis better than every earlier minimal one is locally optimised
+//! (least squares on its inliers under a widened threshold, repeated while the MSAC cost
+//! drops). The loop stops at `max_iterations` or once the confidence that an all-inlier
+//! sample was drawn reaches `confidence`. The best pose is refined on its inliers and the
+//! inliers are counted once more.
+//!
+//! All scratch memory lives in a caller-owned [`PnpWorkspace`] whose capacity `N` is a
+//! const generic.
+
+use nalgebra::Vector3;
+
+use crate::error::{Error, Result};
+use crate::p3p::{self, P3pSolutions};
+use crate::pose::Pose;
+use crate::refine::{self, Loss, RefineConfig, SelectedCorrespondences};
+use crate::rng::SplitMix64;
+
+/// Fewest correspondences accepted: three for P3P and at least one to verify it.
+pub const MIN_CORRESPONDENCES: usize = 4;
+/// Points scored between two checks of the early exit of the MSAC loop.
+const SCORE_BLOCK: usize = 64;
+/// Local optimisation gathers inliers within this multiple of the threshold.
+const LO_THRESHOLD_FACTOR: f64 = 2.0;
+/// Most rounds of gather-and-refit of one local optimisation.
+const LO_MAX_ROUNDS: usize = 4;
+/// Levenberg-Marquardt iterations of one local optimisation round.
+const LO_LM_ITERATIONS: u32 = 10;
+/// Relative spread below which the world points (or the bearings) count as coincident or
+/// collinear.
+const DEGENERATE_RELATIVE: f64 = 1e-12;
+
+/// Settings of [`estimate_pose`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RansacConfig {
+    /// Hard cap on the number of minimal samples drawn.
+    pub max_iterations: u32,
+    /// Inlier threshold on the normalised image plane: a correspondence is an inlier when
+    /// its squared reprojection error is below `threshold^2`.
+    pub threshold: f64,
+    /// Stop once an all-inlier sample was drawn with this probability.
+    pub confidence: f64,
+    /// Seed of the sampling generator; the same seed and input give the same output bits.
+    pub seed: u64,
+    /// Locally optimise every new best hypothesis (LO-RANSAC).
+    pub local_optimization: bool,
+    /// Refine the final pose on its inliers with Levenberg-Marquardt.
+    pub refine: bool,
+}
+
+impl Default for RansacConfig {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl RansacConfig {
+    /// 1000 iterations, threshold `1e-3`, confidence 0.999, seed 0, LO and refinement on.
+    pub const fn new() -> Self {
+        Self {
+            max_iterations: 1000,
+            threshold: 1e-3,
+            confidence: 0.999,
+            seed: 0,
+            local_optimization: true,
+            refine: true,
+        }
+    }
+
+    fn validate(&self) -> Result<()> {
+        let invalid = |parameter| Err(Error::InvalidConfig { parameter });
+        if self.max_iterations == 0 {
+            return invalid("max_iterations");
+        }
+        if !(self.threshold > 0.0 && self.threshold.is_finite()) {
+            return invalid("threshold");
+        }
+        if !(self.confidence > 0.0 && self.confidence < 1.0) {
+            return invalid("confidence");
+        }
+        Ok(())
+    }
+}
+
+/// Scratch memory of [`estimate_pose`] for up to `N` correspondences: a structure-of-arrays
+/// copy of the input for the scoring loop, the inlier mask and an index buffer. Build it
+/// once, e.g. in a `static`, and reuse it for every call.
+#[derive(Debug, Clone)]
+pub struct PnpWorkspace<const N: usize> {
+    world_x: [f64; N],
+    world_y: [f64; N],
+    world_z: [f64; N],
+    bearing_x: [f64; N],
+    bearing_y: [f64; N],
+    inliers: [bool; N],
+    selection: [u32; N],
+}
+
+impl<const N: usize> Default for PnpWorkspace<N> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<const N: usize> PnpWorkspace<N> {
+    /// Size of the workspace in bytes.
+    pub const BYTES: usize = core::mem::size_of::<Self>();
+
+    /// An empty workspace; usable in a `static` initialiser.
+    pub const fn new() -> Self {
+        const { assert!(N <= u32::MAX as usize, "capacity must fit in u32 indices") };
+        Self {
+            world_x: [0.0; N],
+            world_y: [0.0; N],
+            world_z: [0.0; N],
+            bearing_x: [0.0; N],
+            bearing_y: [0.0; N],
+            inliers: [false; N],
+            selection: [0; N],
+        }
+    }
+
+    /// The compiled capacity `N`.
+    pub const fn capacity(&self) -> usize {
+        N
+    }
+}
+
+/// Result of [`estimate_pose`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PnpEstimate<'w> {
+    /// The estimated pose, world to camera.
+    pub pose: Pose,
+    /// Per correspondence: inlier of `pose` under the threshold.
+    pub inlier_mask: &'w [bool],
+    /// Number of `true` entries of `inlier_mask`.
+    pub inlier_count: usize,
+    /// Minimal samples drawn.
+    pub iterations: u32,
+}
+
+/// Robust pose of a camera from bearing vectors `(x/z, y/z)` and their world points.
+///
+/// Fails with a typed error, never a panic: [`Error::LengthMismatch`], fewer than
+/// [`MIN_CORRESPONDENCES`] ([`Error::TooFewPoints`]), more than `N`
+/// ([`Error::CapacityExceeded`]), a NaN or infinity ([`Error::NonFinite`] with the index),
+/// coincident or collinear world points or coincident bearings
+/// ([`Error::DegenerateConfiguration`]), an invalid configuration
+/// ([`Error::InvalidConfig`]) and no hypothesis at all ([`Error::NoPoseFound`]).
+pub fn estimate_pose<'w, const N: usize>(
+    bearings: &[[f64; 2]],
+    points: &[[f64; 3]],
+    config: &RansacConfig,
+    workspace: &'w mut PnpWorkspace<N>,
+) -> Result<PnpEstimate<'w>> {
+    config.validate()?;
+    check_input::<N>(bearings, points)?;
+    let n = bearings.len();
+    let mut ransac = Ransac::new(bearings, points, config, workspace);
+    let (best, iterations) = ransac.sample_hypotheses().ok_or(Error::NoPoseFound)?;
+    let pose = if config.refine {
+        ransac.refine_on_inliers(&best.pose)
+    } else {
+        best.pose
+    };
+    let inlier_count = ransac.mark_inliers(&pose);
+    let inlier_mask = workspace.inliers.get(..n).unwrap_or(&[]);
+    Ok(PnpEstimate {
+        pose,
+        inlier_mask,
+        inlier_count,
+        iterations,
+    })
+}
+
+/// Input checks of [`estimate_pose`], in the order the errors are documented.
+fn check_input<const N: usize>(bearings: &[[f64; 2]], points: &[[f64; 3]]) -> Result<()> {
+    if bearings.len() != points.len() {
+        return Err(Error::LengthMismatch {
+            left: bearings.len(),
+            right: points.len(),
+        });
+    }
+    let n = bearings.len();
+    if n < MIN_CORRESPONDENCES {
+        return Err(Error::TooFewPoints {
+            needed: MIN_CORRESPONDENCES,
+            found: n,
+        });
+    }
+    if n > N {
+        return Err(Error::CapacityExceeded {
+            capacity: N,
+            requested: n,
+        });
+    }
+    refine::check_finite(bearings, points)?;
+    if world_points_are_degenerate(points) || bearings_coincide(bearings) {
+        return Err(Error::DegenerateConfiguration);
+    }
+    Ok(())
+}
+
+fn vector(p: &[f64; 3]) -> Vector3<f64> {
+    Vector3::new(p[0], p[1], p[2])
+}
+
+/// True when all world points coincide or lie on one line.
+fn world_points_are_degenerate(points: &[[f64; 3]]) -> bool {
+    let Some(origin) = points.first().map(vector) else {
+        return true;
+    };
+    let farthest = points.iter().map(|p| vector(p) - origin).fold(
+        Vector3::zeros(),
+        |best: Vector3<f64>, d| {
+            if d.norm_squared() > best.norm_squared() {
+                d
+            } else {
+                best
+            }
+        },
+    );
+    let length2 = farthest.norm_squared();
+    if !(length2 > 0.0) {
+        return true;
+    }
+    // Largest squared distance to the line through the origin point and the farthest one.
+    let off_line2 = points
+        .iter()
+        .map(|p| (vector(p) - origin).cross(&farthest).norm_squared() / length2)
+        .fold(0.0, f64::max);
+    !(off_line2 > DEGENERATE_RELATIVE * length2)
+}
+
+/// True when all bearings are the same point of the image plane.
+fn bearings_coincide(bearings: &[[f64; 2]]) -> bool {
+    let Some(first) = bearings.first() else {
+        return true;
+    };
+    let spread2 = bearings
+        .iter()
+        .map(|b| {
+            let (dx, dy) = (b[0] - first[0], b[1] - first[1]);
+            dx * dx + dy * dy
+        })
+        .fold(0.0, f64::max);
+    let scale2 = 1.0 + first[0] * first[0] + first[1] * first[1];
+    !(spread2 > DEGENERATE_RELATIVE * scale2)
+}
+
+/// A pose with its MSAC cost and inlier count.
+#[derive(Debug, Clone, Copy)]
+struct Scored {
+    pose: Pose,
+    cost: f64,
+    inliers: usize,
+}
+
+/// State of one call of [`estimate_pose`].
+struct Ransac<'a, 'w, const N: usize> {
+    bearings: &'a [[f64; 2]],
+    points: &'a [[f64; 3]],
+    config: &'a RansacConfig,
+    workspace: &'w mut PnpWorkspace<N>,
+    n: usize,
+    threshold2: f64,
+}
+
+impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
+    /// Copies the input into the workspace's scoring layout.
+    fn new(
+        bearings: &'a [[f64; 2]],
+        points: &'a [[f64; 3]],
+        config: &'a RansacConfig,
+        workspace: &'w mut PnpWorkspace<N>,
+    ) -> Self {
+        let n = bearings.len().min(N);
+        for (i, (b, p)) in bearings.iter().zip(points).take(n).enumerate() {
+            workspace.world_x[i] = p[0];
+            workspace.world_y[i] = p[1];
+            workspace.world_z[i] = p[2];
+            workspace.bearing_x[i] = b[0];
+            workspace.bearing_y[i] = b[1];
+        }
+        Self {
+            bearings,
+            points,
+            config,
+            workspace,
+            n,
+            threshold2: config.threshold * config.threshold,
+        }
+    }
+
+    /// The sampling loop: best (locally optimised) hypothesis and the samples drawn.
+    fn sample_hypotheses(&mut self) -> Option<(Scored, u32)> {
+        let mut rng = SplitMix64::new(self.config.seed);
+        let mut solutions = P3pSolutions::new();
+        let mut best: Option<Scored> = None;
+        let mut best_minimal_cost = f64::INFINITY;
+        let mut needed = self.config.max_iterations;
+        let mut iterations = 0;
+        while iterations < needed {
+            iterations += 1;
+            let sample = rng.three_distinct(self.n as u32);
+            let rays = sample.map(|i| p3p::unit_ray(&self.bearings[i]));
+            let world = sample.map(|i| vector(&self.points[i]));
+            p3p::solve_rays(&rays, &world, &mut solutions);
+            let mut sample_best: Option<Scored> = None;
+            for pose in solutions.as_slice() {
+                let bound = sample_best.map_or(best_minimal_cost, |s| s.cost);
+                if let Some((cost, inliers)) = self.msac(pose, bound) {
+                    sample_best = Some(Scored {
+                        pose: *pose,
+                        cost,
+                        inliers,
+                    });
+                }
+            }
+            let Some(candidate) = sample_best else {
+                continue;
+            };
+            best_minimal_cost = candidate.cost;
+            let improved = if self.config.local_optimization {
+                self.locally_optimize(candidate)
+            } else {
+                candidate
+            };
+            if best.is_none_or(|b| improved.cost < b.cost) {
+                best = Some(improved);
+                needed = needed.min(self.iterations_needed(improved.inliers));
+            }
+        }
+        best.map(|b| (b, iterations))
+    }
+
+    /// Samples needed for an all-inlier sample with the configured confidence when a
+    /// fraction `inliers / n` of the correspondences are inliers.
+    fn iterations_needed(&self, inliers: usize) -> u32 {
+        let ratio = inliers as f64 / self.n as f64;
+        let all_inlier_sample = ratio * ratio * ratio;
+        if all_inlier_sample >= 1.0 {
+            return 0;
+        }
+        let needed = libm::log(1.0 - self.config.confidence) / libm::log1p(-all_inlier_sample);
+        if needed.is_finite() && needed < self.config.max_iterations as f64 {
+            libm::ceil(needed) as u32
+        } else {
+            self.config.max_iterations
+        }
+    }
+
+    /// MSAC cost and inlier count of a pose; `None` as soon as the cost reaches `bound`.
+    fn msac(&self, pose: &Pose, bound: f64) -> Option<(f64, usize)> {
+        let ws = &*self.workspace;
+        let scorer = MsacScorer::new(pose, self.threshold2);
+        let n = self.n;
+        let columns = [
+            ws.world_x.get(..n)?,
+            ws.world_y.get(..n)?,
+            ws.world_z.get(..n)?,
+            ws.bearing_x.get(..n)?,
+            ws.bearing_y.get(..n)?,
+        ];
+        let mut cost = 0.0;
+        let mut inliers = 0;
+        let mut start = 0;
+        while start < n {
+            let end = (start + SCORE_BLOCK).min(n);
+            let block = columns.map(|c| c.get(start..end).unwrap_or(&[]));
+            let (block_cost, block_inliers) = scorer.score_block(&block);
+            cost += block_cost;
+            inliers += block_inliers;
+            if cost >= bound {
+                return None;
+            }
+            start = end;
+        }
+        Some((cost, inliers))
+    }
+
+    /// Writes the indices of the correspondences with squared error below `limit2` into the
+    /// selection buffer; returns how many.
+    fn select_within(&mut self, pose: &Pose, limit2: f64) -> usize {
+        let mut count = 0;
+        for (i, (b, p)) in self.bearings.iter().zip(self.points).enumerate() {
+            if squared_error(pose, b, p).is_some_and(|r2| r2 < limit2) {
+                if let Some(slot) = self.workspace.selection.get_mut(count) {
+                    *slot = i as u32;
+                    count += 1;
+                }
+            }
+        }
+        count
+    }
+
+    /// Least-squares refit of a pose on the correspondences within `limit2` of it.
+    fn refit(&mut self, pose: &Pose, limit2: f64, max_iterations: u32) -> Option<Pose> {
+        let count = self.select_within(pose, limit2);
+        if count < 3 {
+            return None;
+        }
+        let set = SelectedCorrespondences {
+            bearings: self.bearings,
+            points: self.points,
+            indices: self.workspace.selection.get(..count).unwrap_or(&[]),
+        };
+        let config = RefineConfig {
+            loss: Loss::Squared,
+            max_iterations,
+            ..RefineConfig::new()
+        };
+        Some(refine::refine_on(&set, pose, &config).pose)
+    }
+
+    /// LO step: refit on the inliers under a widened threshold while the MSAC cost drops.
+    fn locally_optimize(&mut self, hypothesis: Scored) -> Scored {
+        let limit2 = self.threshold2 * LO_THRESHOLD_FACTOR * LO_THRESHOLD_FACTOR;
+        let mut best = hypothesis;
+        for _ in 0..LO_MAX_ROUNDS {
+            let Some(pose) = self.refit(&best.pose, limit2, LO_LM_ITERATIONS) else {
+                break;
+            };
+            match self.msac(&pose, best.cost) {
+                Some((cost, inliers)) => {
+                    best = Scored {
+                        pose,
+                        cost,
+                        inliers,
+                    }
+                }
+                None => break,
+            }
+        }
+        best
+    }
+
+    /// Final Levenberg-Marquardt on the inliers of the best pose.
+    fn refine_on_inliers(&mut self, pose: &Pose) -> Pose {
+        let limit2 = self.threshold2;
+        self.refit(pose, limit2, RefineConfig::new().max_iterations)
+            .unwrap_or(*pose)
+    }
+
+    /// Fills the inlier mask for a pose; returns the inlier count.
+    fn mark_inliers(&mut self, pose: &Pose) -> usize {
+        let threshold2 = self.threshold2;
+        let mut count = 0;
+        let pairs = self.bearings.iter().zip(self.points);
+        for (flag, (b, p)) in self.workspace.inliers.iter_mut().zip(pairs) {
+            *flag = squared_error(pose, b, p).is_some_and(|r2| r2 < threshold2);
+            count += usize::from(*flag);
+        }
+        count
+    }
+}
+
+/// The MSAC cost of one pose, point by point: the hot loop of RANSAC.
+struct MsacScorer {
+    r: [f64; 9],
+    t: [f64; 3],
+    threshold2: f64,
+}
+
+impl MsacScorer {
+    fn new(pose: &Pose, threshold2: f64) -> Self {
+        let m = pose.rotation.matrix();
+        Self {
+            r: [
+                m.m11, m.m12, m.m13, m.m21, m.m22, m.m23, m.m31, m.m32, m.m33,
+            ],
+            t: [pose.translation.x, pose.translation.y, pose.translation.z],
+            threshold2,
+        }
+    }
+
+    /// `(min(r^2, threshold^2), r^2 < threshold^2)` of one point; a point at or behind the
+    /// camera costs `threshold^2`.
+    #[inline(always)]
+    fn point(&self, x: f64, y: f64, z: f64, u: f64, v: f64) -> (f64, bool) {
+        let [r11, r12, r13, r21, r22, r23, r31, r32, r33] = self.r;
+        let px = r11 * x + r12 * y + r13 * z + self.t[0];
+        let py = r21 * x + r22 * y + r23 * z + self.t[1];
+        let pz = r31 * x + r32 * y + r33 * z + self.t[2];
+        let (ex, ey) = (px - u * pz, py - v * pz);
+        let r2 = (ex * ex + ey * ey) / (pz * pz);
+        // Non-short-circuit `&` keeps the loop branch-free.
+        let inlier = (pz > 0.0) & (r2 < self.threshold2);
+        (if inlier { r2 } else { self.threshold2 }, inlier)
+    }
+
+    /// Cost and inlier count of a block given as columns `x, y, z, u, v` of equal length,
+    /// summed in four interleaved lanes (a fixed order, so the result is reproducible).
+    fn score_block(&self, columns: &[&[f64]; 5]) -> (f64, usize) {
+        let [xs, ys, zs, us, vs] = columns.map(|c| c.chunks_exact(4));
+        let tail = [&xs, &ys, &zs, &us, &vs].map(|c| c.remainder());
+        let mut cost = [0.0f64; 4];
+        let mut inliers = [0usize; 4];
+        for ((((x, y), z), u), v) in xs.zip(ys).zip(zs).zip(us).zip(vs) {
+            for lane in 0..4 {
+                let (c, inlier) = self.point(x[lane], y[lane], z[lane], u[lane], v[lane]);
+                cost[lane] += c;
+                inliers[lane] += usize::from(inlier);
+            }
+        }
+        let [x, y, z, u, v] = tail;
+        let rest = x.iter().zip(y).zip(z).zip(u).zip(v);
+        for (lane, ((((&x, &y), &z), &u), &v)) in rest.enumerate() {
+            let (c, inlier) = self.point(x, y, z, u, v);
+            cost[lane] += c;
+            inliers[lane] += usize::from(inlier);
+        }
+        (
+            (cost[0] + cost[1]) + (cost[2] + cost[3]),
+            inliers.iter().sum(),
+        )
+    }
+}
+
+/// Squared reprojection error on the normalised plane, `None` for a point at or behind the
+/// camera.
+fn squared_error(pose: &Pose, bearing: &[f64; 2], point: &[f64; 3]) -> Option<f64> {
+    let p = pose.transform(&vector(point));
+    if !(p.z > 0.0) {
+        return None;
+    }
+    let (ex, ey) = (p.x / p.z - bearing[0], p.y / p.z - bearing[1]);
+    Some(ex * ex + ey * ey)
+}
