@@ -27,9 +27,14 @@ pub const MIN_CORRESPONDENCES: usize = 4;
 /// Points scored between two checks of the early exit of the MSAC loop.
 const SCORE_BLOCK: usize = 64;
 /// Local optimisation gathers inliers within this multiple of the threshold.
-const LO_THRESHOLD_FACTOR: f64 = 2.0;
+
+/// Local optimisation refits on the correspondences within this multiple of the threshold;
+/// the count of those (the support) also selects the hypotheses worth optimising.
+const LO_RADIUS_FACTOR: f64 = 3.0;
 /// Most rounds of gather-and-refit of one local optimisation.
 const LO_MAX_ROUNDS: usize = 4;
+/// Gather-and-refine rounds of the final refinement.
+const FINAL_ROUNDS: usize = 3;
 /// Levenberg-Marquardt iterations of one local optimisation round.
 const LO_LM_ITERATIONS: u32 = 10;
 /// Relative spread below which the world points (or the bearings) count as coincident or
@@ -254,12 +259,27 @@ fn bearings_coincide(bearings: &[[f64; 2]]) -> bool {
     !(spread2 > DEGENERATE_RELATIVE * scale2)
 }
 
-/// A pose with its MSAC cost and inlier count.
+/// MSAC cost of a pose, its inliers, and its support: the correspondences within the wider
+/// local-optimisation radius.
+#[derive(Debug, Clone, Copy, Default)]
+struct Score {
+    cost: f64,
+    inliers: usize,
+    support: usize,
+}
+
+/// What a hypothesis must beat (lower cost or larger support) to be kept.
+#[derive(Debug, Clone, Copy)]
+struct Bounds {
+    cost: f64,
+    support: usize,
+}
+
+/// A pose with its score.
 #[derive(Debug, Clone, Copy)]
 struct Scored {
     pose: Pose,
-    cost: f64,
-    inliers: usize,
+    score: Score,
 }
 
 /// State of one call of [`estimate_pose`].
@@ -270,6 +290,7 @@ struct Ransac<'a, 'w, const N: usize> {
     workspace: &'w mut PnpWorkspace<N>,
     n: usize,
     threshold2: f64,
+    support_limit2: f64,
 }
 
 impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
@@ -295,6 +316,10 @@ impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
             workspace,
             n,
             threshold2: config.threshold * config.threshold,
+            support_limit2: config.threshold
+                * config.threshold
+                * LO_RADIUS_FACTOR
+                * LO_RADIUS_FACTOR,
         }
     }
 
@@ -303,7 +328,16 @@ impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
         let mut rng = SplitMix64::new(self.config.seed);
         let mut solutions = P3pSolutions::new();
         let mut best: Option<Scored> = None;
-        let mut best_minimal_cost = f64::INFINITY;
+        // A hypothesis is kept (and locally optimised) when its cost beats every earlier
+        // minimal hypothesis or its support beats the best pose so far.
+        let mut bounds = Bounds {
+            cost: f64::INFINITY,
+            support: if self.config.local_optimization {
+                0
+            } else {
+                usize::MAX
+            },
+        };
         let mut needed = self.config.max_iterations;
         let mut iterations = 0;
         while iterations < needed {
@@ -312,29 +346,24 @@ impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
             let rays = sample.map(|i| p3p::unit_ray(&self.bearings[i]));
             let world = sample.map(|i| vector(&self.points[i]));
             p3p::solve_rays(&rays, &world, &mut solutions);
-            let mut sample_best: Option<Scored> = None;
             for pose in solutions.as_slice() {
-                let bound = sample_best.map_or(best_minimal_cost, |s| s.cost);
-                if let Some((cost, inliers)) = self.msac(pose, bound) {
-                    sample_best = Some(Scored {
-                        pose: *pose,
-                        cost,
-                        inliers,
-                    });
+                let Some(score) = self.score(pose, &bounds) else {
+                    continue;
+                };
+                bounds.cost = bounds.cost.min(score.cost);
+                let candidate = Scored { pose: *pose, score };
+                let improved = if self.config.local_optimization {
+                    self.locally_optimize(candidate)
+                } else {
+                    candidate
+                };
+                if best.is_none_or(|b| improved.score.cost < b.score.cost) {
+                    best = Some(improved);
+                    if self.config.local_optimization {
+                        bounds.support = bounds.support.max(improved.score.support);
+                    }
+                    needed = needed.min(self.iterations_needed(improved.score.support));
                 }
-            }
-            let Some(candidate) = sample_best else {
-                continue;
-            };
-            best_minimal_cost = candidate.cost;
-            let improved = if self.config.local_optimization {
-                self.locally_optimize(candidate)
-            } else {
-                candidate
-            };
-            if best.is_none_or(|b| improved.cost < b.cost) {
-                best = Some(improved);
-                needed = needed.min(self.iterations_needed(improved.inliers));
             }
         }
         best.map(|b| (b, iterations))
@@ -356,10 +385,11 @@ impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
         }
     }
 
-    /// MSAC cost and inlier count of a pose; `None` as soon as the cost reaches `bound`.
-    fn msac(&self, pose: &Pose, bound: f64) -> Option<(f64, usize)> {
+    /// Score of a pose if it beats `bounds` in cost or in support; `None` as soon as it
+    /// can no longer.
+    fn score(&self, pose: &Pose, bounds: &Bounds) -> Option<Score> {
         let ws = &*self.workspace;
-        let scorer = MsacScorer::new(pose, self.threshold2);
+        let scorer = MsacScorer::new(pose, self.threshold2, self.support_limit2);
         let n = self.n;
         let columns = [
             ws.world_x.get(..n)?,
@@ -368,21 +398,22 @@ impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
             ws.bearing_x.get(..n)?,
             ws.bearing_y.get(..n)?,
         ];
-        let mut cost = 0.0;
-        let mut inliers = 0;
+        let mut total = Score::default();
         let mut start = 0;
         while start < n {
             let end = (start + SCORE_BLOCK).min(n);
             let block = columns.map(|c| c.get(start..end).unwrap_or(&[]));
-            let (block_cost, block_inliers) = scorer.score_block(&block);
-            cost += block_cost;
-            inliers += block_inliers;
-            if cost >= bound {
+            let block_score = scorer.score_block(&block);
+            total.cost += block_score.cost;
+            total.inliers += block_score.inliers;
+            total.support += block_score.support;
+            let reachable_support = total.support + (n - end);
+            if total.cost >= bounds.cost && reachable_support <= bounds.support {
                 return None;
             }
             start = end;
         }
-        Some((cost, inliers))
+        Some(total)
     }
 
     /// Writes the indices of the correspondences with squared error below `limit2` into the
@@ -401,7 +432,7 @@ impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
     }
 
     /// Least-squares refit of a pose on the correspondences within `limit2` of it.
-    fn refit(&mut self, pose: &Pose, limit2: f64, max_iterations: u32) -> Option<Pose> {
+    fn refit(&mut self, pose: &Pose, limit2: f64, loss: Loss, max_iterations: u32) -> Option<Pose> {
         let count = self.select_within(pose, limit2);
         if count < 3 {
             return None;
@@ -412,7 +443,7 @@ impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
             indices: self.workspace.selection.get(..count).unwrap_or(&[]),
         };
         let config = RefineConfig {
-            loss: Loss::Squared,
+            loss,
             max_iterations,
             ..RefineConfig::new()
         };
@@ -421,31 +452,39 @@ impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
 
     /// LO step: refit on the inliers under a widened threshold while the MSAC cost drops.
     fn locally_optimize(&mut self, hypothesis: Scored) -> Scored {
-        let limit2 = self.threshold2 * LO_THRESHOLD_FACTOR * LO_THRESHOLD_FACTOR;
+        let limit2 = self.support_limit2;
         let mut best = hypothesis;
         for _ in 0..LO_MAX_ROUNDS {
-            let Some(pose) = self.refit(&best.pose, limit2, LO_LM_ITERATIONS) else {
+            let Some(pose) = self.refit(&best.pose, limit2, Loss::Squared, LO_LM_ITERATIONS) else {
                 break;
             };
-            match self.msac(&pose, best.cost) {
-                Some((cost, inliers)) => {
-                    best = Scored {
-                        pose,
-                        cost,
-                        inliers,
-                    }
-                }
+            let bounds = Bounds {
+                cost: best.score.cost,
+                support: usize::MAX,
+            };
+            match self.score(&pose, &bounds) {
+                Some(score) => best = Scored { pose, score },
                 None => break,
             }
         }
         best
     }
 
-    /// Final Levenberg-Marquardt on the inliers of the best pose.
+    /// Final Levenberg-Marquardt with a Cauchy loss of scale `threshold` on the
+    /// correspondences within the local-optimisation radius, gathered again after each round.
     fn refine_on_inliers(&mut self, pose: &Pose) -> Pose {
-        let limit2 = self.threshold2;
-        self.refit(pose, limit2, RefineConfig::new().max_iterations)
-            .unwrap_or(*pose)
+        let loss = Loss::Cauchy {
+            scale: self.config.threshold,
+        };
+        let mut pose = *pose;
+        for _ in 0..FINAL_ROUNDS {
+            let limit2 = self.support_limit2;
+            match self.refit(&pose, limit2, loss, RefineConfig::new().max_iterations) {
+                Some(refined) => pose = refined,
+                None => break,
+            }
+        }
+        pose
     }
 
     /// Fills the inlier mask for a pose; returns the inlier count.
@@ -466,10 +505,11 @@ struct MsacScorer {
     r: [f64; 9],
     t: [f64; 3],
     threshold2: f64,
+    support_limit2: f64,
 }
 
 impl MsacScorer {
-    fn new(pose: &Pose, threshold2: f64) -> Self {
+    fn new(pose: &Pose, threshold2: f64, support_limit2: f64) -> Self {
         let m = pose.rotation.matrix();
         Self {
             r: [
@@ -477,13 +517,14 @@ impl MsacScorer {
             ],
             t: [pose.translation.x, pose.translation.y, pose.translation.z],
             threshold2,
+            support_limit2,
         }
     }
 
-    /// `(min(r^2, threshold^2), r^2 < threshold^2)` of one point; a point at or behind the
-    /// camera costs `threshold^2`.
+    /// `(min(r^2, threshold^2), inlier, within the support radius)` of one point; a point
+    /// at or behind the camera costs `threshold^2` and supports nothing.
     #[inline(always)]
-    fn point(&self, x: f64, y: f64, z: f64, u: f64, v: f64) -> (f64, bool) {
+    fn point(&self, x: f64, y: f64, z: f64, u: f64, v: f64) -> (f64, bool, bool) {
         let [r11, r12, r13, r21, r22, r23, r31, r32, r33] = self.r;
         let px = r11 * x + r12 * y + r13 * z + self.t[0];
         let py = r21 * x + r22 * y + r23 * z + self.t[1];
@@ -491,35 +532,42 @@ impl MsacScorer {
         let (ex, ey) = (px - u * pz, py - v * pz);
         let r2 = (ex * ex + ey * ey) / (pz * pz);
         // Non-short-circuit `&` keeps the loop branch-free.
-        let inlier = (pz > 0.0) & (r2 < self.threshold2);
-        (if inlier { r2 } else { self.threshold2 }, inlier)
+        let in_front = pz > 0.0;
+        let inlier = in_front & (r2 < self.threshold2);
+        let supported = in_front & (r2 < self.support_limit2);
+        (if inlier { r2 } else { self.threshold2 }, inlier, supported)
     }
 
-    /// Cost and inlier count of a block given as columns `x, y, z, u, v` of equal length,
-    /// summed in four interleaved lanes (a fixed order, so the result is reproducible).
-    fn score_block(&self, columns: &[&[f64]; 5]) -> (f64, usize) {
+    /// Score of a block given as columns `x, y, z, u, v` of equal length, summed in four
+    /// interleaved lanes (a fixed order, so the result is reproducible).
+    fn score_block(&self, columns: &[&[f64]; 5]) -> Score {
         let [xs, ys, zs, us, vs] = columns.map(|c| c.chunks_exact(4));
         let tail = [&xs, &ys, &zs, &us, &vs].map(|c| c.remainder());
         let mut cost = [0.0f64; 4];
         let mut inliers = [0usize; 4];
+        let mut support = [0usize; 4];
         for ((((x, y), z), u), v) in xs.zip(ys).zip(zs).zip(us).zip(vs) {
             for lane in 0..4 {
-                let (c, inlier) = self.point(x[lane], y[lane], z[lane], u[lane], v[lane]);
+                let (c, inlier, supported) =
+                    self.point(x[lane], y[lane], z[lane], u[lane], v[lane]);
                 cost[lane] += c;
                 inliers[lane] += usize::from(inlier);
+                support[lane] += usize::from(supported);
             }
         }
         let [x, y, z, u, v] = tail;
         let rest = x.iter().zip(y).zip(z).zip(u).zip(v);
         for (lane, ((((&x, &y), &z), &u), &v)) in rest.enumerate() {
-            let (c, inlier) = self.point(x, y, z, u, v);
+            let (c, inlier, supported) = self.point(x, y, z, u, v);
             cost[lane] += c;
             inliers[lane] += usize::from(inlier);
+            support[lane] += usize::from(supported);
         }
-        (
-            (cost[0] + cost[1]) + (cost[2] + cost[3]),
-            inliers.iter().sum(),
-        )
+        Score {
+            cost: (cost[0] + cost[1]) + (cost[2] + cost[3]),
+            inliers: inliers.iter().sum(),
+            support: support.iter().sum(),
+        }
     }
 }
 

@@ -81,6 +81,8 @@ pub struct RefineConfig {
     pub step_tolerance: f64,
     /// Stop when the gradient's largest component is below this.
     pub gradient_tolerance: f64,
+    /// Stop when an accepted step lowers the cost by less than this fraction.
+    pub cost_tolerance: f64,
 }
 
 impl Default for RefineConfig {
@@ -90,13 +92,15 @@ impl Default for RefineConfig {
 }
 
 impl RefineConfig {
-    /// Least squares, 100 iterations, tolerances `1e-12` (step) and `1e-16` (gradient).
+    /// Least squares, 100 iterations, tolerances `1e-10` (step), `1e-16` (gradient) and
+    /// `1e-12` (relative cost decrease).
     pub const fn new() -> Self {
         Self {
             loss: Loss::Squared,
             max_iterations: 100,
-            step_tolerance: 1e-12,
+            step_tolerance: 1e-10,
             gradient_tolerance: 1e-16,
+            cost_tolerance: 1e-12,
         }
     }
 }
@@ -320,10 +324,11 @@ pub(crate) fn refine_on<C: Correspondences>(
         let candidate = apply_update(&pose, &step);
         let next = normal_equations(set, &candidate, &config.loss);
         if next.cost < current.cost {
+            let small_decrease = current.cost - next.cost <= config.cost_tolerance * current.cost;
             pose = candidate;
             current = next;
             lambda = (lambda * 0.1).max(LAMBDA_MIN);
-            if step.amax() < config.step_tolerance {
+            if small_decrease || step.amax() < config.step_tolerance {
                 break;
             }
         } else {
