@@ -30,7 +30,7 @@ const SCORE_BLOCK: usize = 64;
 
 /// Local optimisation refits on the correspondences within this multiple of the threshold;
 /// the count of those (the support) also selects the hypotheses worth optimising.
-const LO_RADIUS_FACTOR: f64 = 3.0;
+const LO_RADIUS_FACTOR: f64 = 4.0;
 /// Most rounds of gather-and-refit of one local optimisation.
 const LO_MAX_ROUNDS: usize = 4;
 /// Gather-and-refine rounds of the final refinement.
@@ -450,22 +450,34 @@ impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
         Some(refine::refine_on(&set, pose, &config).pose)
     }
 
-    /// LO step: refit on the inliers under a widened threshold while the MSAC cost drops.
+    /// LO step: least-squares refit on the support (the correspondences within the LO
+    /// radius), repeated while the support grows or the cost drops; returns the refit of
+    /// lowest MSAC cost (the hypothesis itself when none is better).
     fn locally_optimize(&mut self, hypothesis: Scored) -> Scored {
         let limit2 = self.support_limit2;
+        let unbounded = Bounds {
+            cost: f64::INFINITY,
+            support: 0,
+        };
         let mut best = hypothesis;
+        let mut current = hypothesis;
         for _ in 0..LO_MAX_ROUNDS {
-            let Some(pose) = self.refit(&best.pose, limit2, Loss::Squared, LO_LM_ITERATIONS) else {
+            let Some(pose) = self.refit(&current.pose, limit2, Loss::Squared, LO_LM_ITERATIONS)
+            else {
                 break;
             };
-            let bounds = Bounds {
-                cost: best.score.cost,
-                support: usize::MAX,
+            let Some(score) = self.score(&pose, &unbounded) else {
+                break;
             };
-            match self.score(&pose, &bounds) {
-                Some(score) => best = Scored { pose, score },
-                None => break,
+            let refit = Scored { pose, score };
+            if score.cost < best.score.cost {
+                best = refit;
             }
+            let progress = score.support > current.score.support || score.cost < current.score.cost;
+            if !progress {
+                break;
+            }
+            current = refit;
         }
         best
     }
