@@ -11,6 +11,9 @@
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
+#[cfg(test)]
+extern crate std;
+
 pub mod camera;
 pub mod error;
 pub mod p3p;
@@ -18,6 +21,8 @@ pub mod pose;
 pub mod ransac;
 pub mod refine;
 pub mod rng;
+#[cfg(test)]
+mod test_scene;
 
 pub use camera::Camera;
 pub use error::{Error, Result};

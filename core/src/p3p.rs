@@ -581,4 +581,97 @@ mod tests {
             Err(Error::DegenerateConfiguration)
         );
     }
+
+    mod properties {
+        use super::*;
+        use crate::rng::SplitMix64;
+        use crate::test_scene::{random_pose, rotation_distance, transform_points, Scene};
+        use proptest::prelude::*;
+
+        fn triple(scene: &Scene) -> ([[f64; 2]; 3], [[f64; 3]; 3]) {
+            (
+                [scene.bearings[0], scene.bearings[1], scene.bearings[2]],
+                [scene.points[0], scene.points[1], scene.points[2]],
+            )
+        }
+
+        /// A triangle with sides of at least 1 and angles of at least 5 degrees.
+        fn well_conditioned(points: &[[f64; 3]; 3]) -> bool {
+            let world = points.map(|p| Vector3::new(p[0], p[1], p[2]));
+            (0..3).all(|i| {
+                let a = world[(i + 1) % 3] - world[i];
+                let b = world[(i + 2) % 3] - world[i];
+                a.norm() > 1.0 && a.cross(&b).norm() > 0.087 * a.norm() * b.norm()
+            })
+        }
+
+        fn same_pose(a: &Pose, b: &Pose, tolerance: f64) -> bool {
+            rotation_distance(a, b) < tolerance
+                && a.translation_error(b) < tolerance * (1.0 + b.translation.norm())
+        }
+
+        fn contains(solutions: &P3pSolutions, pose: &Pose, tolerance: f64) -> bool {
+            solutions
+                .as_slice()
+                .iter()
+                .any(|s| same_pose(s, pose, tolerance))
+        }
+
+        proptest! {
+            #![proptest_config(ProptestConfig::with_cases(256))]
+
+            #[test]
+            fn noise_free_scenes_recover_the_pose(seed in any::<u64>()) {
+                let scene = Scene::new(seed, 3, 3, 0.0);
+                let (bearings, points) = triple(&scene);
+                prop_assume!(well_conditioned(&points));
+                let solutions = solve(&bearings, &points).unwrap();
+                prop_assert!(contains(&solutions, &scene.pose, 1e-6));
+                for pose in solutions.as_slice() {
+                    for (p, b) in points.iter().zip(&bearings) {
+                        let back = pose.bearing(&Vector3::new(p[0], p[1], p[2]), 0).unwrap();
+                        prop_assert!((back[0] - b[0]).abs() < 1e-8 && (back[1] - b[1]).abs() < 1e-8);
+                    }
+                }
+            }
+
+            #[test]
+            fn permuting_the_correspondences_keeps_the_solutions(
+                seed in any::<u64>(),
+                order in Just([0usize, 1, 2]).prop_shuffle(),
+            ) {
+                let scene = Scene::new(seed, 3, 3, 0.0);
+                let (bearings, points) = triple(&scene);
+                prop_assume!(well_conditioned(&points));
+                let solutions = solve(&bearings, &points).unwrap();
+                let permuted = solve(&order.map(|i| bearings[i]), &order.map(|i| points[i])).unwrap();
+                for pose in permuted.as_slice() {
+                    prop_assert!(contains(&solutions, pose, 1e-7));
+                }
+                for pose in solutions.as_slice() {
+                    prop_assert!(contains(&permuted, pose, 1e-7));
+                }
+            }
+
+            #[test]
+            fn rigid_change_of_world_frame_moves_the_solutions_with_it(
+                seed in any::<u64>(),
+                frame_seed in any::<u64>(),
+            ) {
+                let scene = Scene::new(seed, 3, 3, 0.0);
+                let (bearings, points) = triple(&scene);
+                prop_assume!(well_conditioned(&points));
+                let frame = random_pose(&mut SplitMix64::new(frame_seed));
+                let moved = transform_points(&frame, &points);
+                let moved: [[f64; 3]; 3] = [moved[0], moved[1], moved[2]];
+                let solutions = solve(&bearings, &points).unwrap();
+                let in_new_frame = solve(&bearings, &moved).unwrap();
+                let back_to_world = frame.inverse();
+                for pose in solutions.as_slice() {
+                    prop_assert!(contains(&in_new_frame, &pose.compose(&back_to_world), 1e-7));
+                }
+                prop_assert_eq!(solutions.len(), in_new_frame.len());
+            }
+        }
+    }
 }

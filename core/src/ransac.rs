@@ -1,18 +1,28 @@
 //! Robust absolute pose from 2D-3D matches: LO-RANSAC around the P3P solver with MSAC
-//! scoring, then Levenberg-Marquardt on the inliers (paper supp. "Pose Estimation"; the
-//! reference used OpenCV's RANSAC-PnP, this stage follows PoseLib's LO-RANSAC instead).
+//! scoring, then Levenberg-Marquardt (paper supp. "Pose Estimation"; the reference used
+//! OpenCV's RANSAC-PnP, this stage follows PoseLib's LO-RANSAC instead).
 //!
-//! One iteration draws three distinct correspondences with a seeded [`SplitMix64`], solves
-//! P3P and scores every solution with the MSAC cost `sum min(r^2, threshold^2)` of the
-//! reprojection errors on the normalised image plane (points behind the camera cost
-//! `threshold^2`). A hypothesis better than every earlier minimal one is locally optimised
-//! (least squares on its inliers under a widened threshold, repeated while the MSAC cost
-//! drops). The loop stops at `max_iterations` or once the confidence that an all-inlier
-//! sample was drawn reaches `confidence`. The best pose is refined on its inliers and the
-//! inliers are counted once more.
+//! - Sampling: three distinct correspondences per iteration from a seeded [`SplitMix64`];
+//!   P3P ([`crate::p3p`]) gives up to four hypotheses.
+//! - Scoring: MSAC cost `sum min(r^2, threshold^2)` of the squared reprojection errors on the
+//!   normalised image plane (a point at or behind the camera costs `threshold^2`); inliers
+//!   are the points with `r^2 < threshold^2`. The same pass counts the *support*: the points
+//!   within the LO radius, `LO_RADIUS_FACTOR` (4) times the threshold. With a threshold
+//!   near the noise level a correct but noisy minimal model may have no inlier beyond its own
+//!   sample while its support already stands out from random hypotheses.
+//! - Local optimisation: a hypothesis whose cost beats every earlier minimal hypothesis, or
+//!   whose support beats the best pose so far, is refitted by least squares on its support,
+//!   again while the support grows or the cost drops; the refit of lowest cost competes
+//!   with the best pose.
+//! - Stopping: at `max_iterations` (hard cap), or once `confidence` is reached for the
+//!   inlier ratio estimated by the best pose's support (the inliers at the threshold alone
+//!   undercount the true inliers when the threshold is near the noise level).
+//! - Refinement: Levenberg-Marquardt with a Cauchy loss of scale `threshold` on the best
+//!   pose's support, gathered again after each of three rounds; then the inliers are
+//!   counted once more at the threshold.
 //!
 //! All scratch memory lives in a caller-owned [`PnpWorkspace`] whose capacity `N` is a
-//! const generic.
+//! const generic; nothing is allocated and the stack use is small and fixed.
 
 use nalgebra::Vector3;
 
@@ -592,4 +602,255 @@ fn squared_error(pose: &Pose, bearing: &[f64; 2], point: &[f64; 3]) -> Option<f6
     }
     let (ex, ey) = (p.x / p.z - bearing[0], p.y / p.z - bearing[1]);
     Some(ex * ex + ey * ey)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::error::Input;
+    use crate::rng::SplitMix64;
+    use crate::test_scene::{random_pose, rotation_distance, transform_points, Scene};
+    use proptest::prelude::*;
+    use std::boxed::Box;
+    use std::sync::Mutex;
+    use std::vec::Vec;
+
+    const CAPACITY: usize = 256;
+
+    fn workspace() -> Box<PnpWorkspace<CAPACITY>> {
+        Box::new(PnpWorkspace::new())
+    }
+
+    fn close(a: &Pose, b: &Pose, tolerance: f64) -> bool {
+        rotation_distance(a, b) < tolerance
+            && a.translation_error(b) < tolerance * (1.0 + b.translation.norm())
+    }
+
+    /// A workspace in a `static`, as firmware would hold it.
+    static SHARED: Mutex<PnpWorkspace<64>> = Mutex::new(PnpWorkspace::new());
+
+    #[test]
+    fn workspace_size_is_pinned() {
+        // Five f64 columns, a bool mask and u32 indices per correspondence.
+        assert_eq!(PnpWorkspace::<1024>::BYTES, 1024 * (5 * 8 + 1 + 4));
+        assert_eq!(
+            PnpWorkspace::<64>::BYTES,
+            core::mem::size_of::<PnpWorkspace<64>>()
+        );
+    }
+
+    #[test]
+    fn static_workspace_solves_a_small_scene() {
+        let scene = Scene::new(5, 40, 30, 0.0);
+        let mut ws = SHARED.lock().unwrap();
+        let estimate = estimate_pose(
+            &scene.bearings,
+            &scene.points,
+            &RansacConfig::new(),
+            &mut ws,
+        )
+        .unwrap();
+        assert!(close(&estimate.pose, &scene.pose, 1e-9));
+        assert_eq!(estimate.inlier_mask.len(), 40);
+        assert!(estimate.inlier_mask[..30].iter().all(|&f| f));
+    }
+
+    #[test]
+    fn same_seed_gives_identical_bits() {
+        let scene = Scene::new(9, 120, 60, 1e-3);
+        let config = RansacConfig::new();
+        let (mut a, mut b) = (workspace(), workspace());
+        let first = estimate_pose(&scene.bearings, &scene.points, &config, &mut a).unwrap();
+        let second = estimate_pose(&scene.bearings, &scene.points, &config, &mut b).unwrap();
+        assert_eq!(first, second);
+        let count = first.inlier_mask.iter().filter(|&&f| f).count();
+        assert_eq!(count, first.inlier_count);
+        assert!(first.iterations >= 1 && first.iterations <= config.max_iterations);
+    }
+
+    #[test]
+    fn noisy_half_outlier_scene_is_solved_accurately() {
+        let scene = Scene::new(21, 200, 100, 1e-3);
+        let mut ws = workspace();
+        let estimate = estimate_pose(
+            &scene.bearings,
+            &scene.points,
+            &RansacConfig::new(),
+            &mut ws,
+        )
+        .unwrap();
+        assert!(estimate.pose.rotation_error_deg(&scene.pose) < 0.2);
+        assert!(estimate.pose.center_error(&scene.pose) < 0.05);
+        // About 40% of the true inliers are within a threshold equal to the noise level.
+        assert!(estimate.inlier_count > 25, "{}", estimate.inlier_count);
+    }
+
+    #[test]
+    fn lo_and_refinement_can_be_switched_off() {
+        let scene = Scene::new(4, 100, 80, 0.0);
+        let config = RansacConfig {
+            local_optimization: false,
+            refine: false,
+            ..RansacConfig::new()
+        };
+        let mut ws = workspace();
+        let estimate = estimate_pose(&scene.bearings, &scene.points, &config, &mut ws).unwrap();
+        assert!(close(&estimate.pose, &scene.pose, 1e-8));
+        assert_eq!(estimate.inlier_count, 80);
+    }
+
+    #[test]
+    fn bad_input_is_a_typed_error() {
+        let scene = Scene::new(3, 20, 20, 0.0);
+        let config = RansacConfig::new();
+        let mut ws = workspace();
+        let (b, p) = (&scene.bearings, &scene.points);
+        assert_eq!(
+            estimate_pose(&b[..10], p, &config, &mut ws).unwrap_err(),
+            Error::LengthMismatch {
+                left: 10,
+                right: 20
+            }
+        );
+        assert_eq!(
+            estimate_pose(&b[..3], &p[..3], &config, &mut ws).unwrap_err(),
+            Error::TooFewPoints {
+                needed: 4,
+                found: 3
+            }
+        );
+        let mut small = PnpWorkspace::<8>::new();
+        assert_eq!(
+            estimate_pose(b, p, &config, &mut small).unwrap_err(),
+            Error::CapacityExceeded {
+                capacity: 8,
+                requested: 20
+            }
+        );
+        let mut nan_bearings = b.clone();
+        nan_bearings[7][1] = f64::NAN;
+        assert_eq!(
+            estimate_pose(&nan_bearings, p, &config, &mut ws).unwrap_err(),
+            Error::NonFinite {
+                input: Input::Keypoints,
+                index: 7
+            }
+        );
+        let mut inf_points = p.clone();
+        inf_points[12][0] = f64::NEG_INFINITY;
+        assert_eq!(
+            estimate_pose(b, &inf_points, &config, &mut ws).unwrap_err(),
+            Error::NonFinite {
+                input: Input::Points3d,
+                index: 12
+            }
+        );
+        let coincident: Vec<[f64; 3]> = p.iter().map(|_| [1.0, 2.0, 3.0]).collect();
+        assert_eq!(
+            estimate_pose(b, &coincident, &config, &mut ws).unwrap_err(),
+            Error::DegenerateConfiguration
+        );
+        let collinear: Vec<[f64; 3]> = (0..20).map(|i| [i as f64, 2.0 * i as f64, 5.0]).collect();
+        assert_eq!(
+            estimate_pose(b, &collinear, &config, &mut ws).unwrap_err(),
+            Error::DegenerateConfiguration
+        );
+        let same_bearing: Vec<[f64; 2]> = b.iter().map(|_| [0.1, -0.2]).collect();
+        assert_eq!(
+            estimate_pose(&same_bearing, p, &config, &mut ws).unwrap_err(),
+            Error::DegenerateConfiguration
+        );
+        let bad_threshold = RansacConfig {
+            threshold: -1.0,
+            ..config
+        };
+        assert_eq!(
+            estimate_pose(b, p, &bad_threshold, &mut ws).unwrap_err(),
+            Error::InvalidConfig {
+                parameter: "threshold"
+            }
+        );
+        let bad_confidence = RansacConfig {
+            confidence: 1.0,
+            ..config
+        };
+        assert!(matches!(
+            estimate_pose(b, p, &bad_confidence, &mut ws),
+            Err(Error::InvalidConfig { .. })
+        ));
+    }
+
+    #[test]
+    fn no_hypothesis_is_an_error() {
+        // No triple of these four correspondences has a pose with positive depths (checked
+        // independently by scanning the depth of the first point of each triple).
+        let bearings = [[0.3, -0.6], [-0.2, 0.8], [0.4, 0.9], [0.5, -0.7]];
+        let points = [
+            [-1.3, 1.0, 1.1],
+            [-0.4, -1.6, 1.8],
+            [0.4, -1.6, 1.4],
+            [1.4, -2.0, -0.8],
+        ];
+        let mut ws = workspace();
+        let result = estimate_pose(&bearings, &points, &RansacConfig::new(), &mut ws);
+        assert_eq!(result.unwrap_err(), Error::NoPoseFound);
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(48))]
+
+        #[test]
+        fn noise_free_scenes_with_outliers_recover_the_pose(
+            seed in any::<u64>(),
+            count in 20usize..150,
+            outlier_percent in 0usize..60,
+        ) {
+            let inliers = count - count * outlier_percent / 100;
+            let scene = Scene::new(seed, count, inliers, 0.0);
+            let mut ws = workspace();
+        let estimate = estimate_pose(&scene.bearings, &scene.points, &RansacConfig::new(), &mut ws).unwrap();
+            prop_assert!(close(&estimate.pose, &scene.pose, 1e-6));
+            prop_assert!(estimate.inlier_mask[..inliers].iter().all(|&f| f));
+        }
+
+        #[test]
+        fn permuting_the_correspondences_gives_the_same_pose(
+            seed in any::<u64>(),
+            shuffle_seed in any::<u64>(),
+        ) {
+            let scene = Scene::new(seed, 60, 40, 0.0);
+            let mut order: Vec<usize> = (0..60).collect();
+            let mut rng = SplitMix64::new(shuffle_seed);
+            for i in (1..order.len()).rev() {
+                order.swap(i, rng.below(i as u32 + 1) as usize);
+            }
+            let bearings: Vec<[f64; 2]> = order.iter().map(|&i| scene.bearings[i]).collect();
+            let points: Vec<[f64; 3]> = order.iter().map(|&i| scene.points[i]).collect();
+            let config = RansacConfig::new();
+            let (mut a, mut b) = (workspace(), workspace());
+            let original = estimate_pose(&scene.bearings, &scene.points, &config, &mut a).unwrap();
+            let permuted = estimate_pose(&bearings, &points, &config, &mut b).unwrap();
+            prop_assert!(close(&original.pose, &permuted.pose, 1e-8));
+            for (k, &i) in order.iter().enumerate() {
+                prop_assert_eq!(permuted.inlier_mask[k], original.inlier_mask[i]);
+            }
+        }
+
+        #[test]
+        fn rigid_change_of_world_frame_moves_the_pose_with_it(
+            seed in any::<u64>(),
+            frame_seed in any::<u64>(),
+        ) {
+            let scene = Scene::new(seed, 60, 40, 0.0);
+            let frame = random_pose(&mut SplitMix64::new(frame_seed));
+            let moved = transform_points(&frame, &scene.points);
+            let config = RansacConfig::new();
+            let (mut a, mut b) = (workspace(), workspace());
+            let original = estimate_pose(&scene.bearings, &scene.points, &config, &mut a).unwrap();
+            let in_new_frame = estimate_pose(&scene.bearings, &moved, &config, &mut b).unwrap();
+            let expected = original.pose.compose(&frame.inverse());
+            prop_assert!(close(&in_new_frame.pose, &expected, 1e-8));
+            prop_assert_eq!(original.inlier_mask, in_new_frame.inlier_mask);
+        }
+    }
 }
