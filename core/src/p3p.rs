@@ -125,7 +125,8 @@ fn world_triangle_is_degenerate(world: &[Vector3<f64>; 3]) -> bool {
     let e1 = world[1] - world[0];
     let e2 = world[2] - world[0];
     let scale = e1.norm_squared() * e2.norm_squared();
-    !(e1.cross(&e2).norm_squared() > COLLINEAR_SIN2 * scale)
+    let area2 = e1.cross(&e2).norm_squared();
+    area2.is_nan() || area2 <= COLLINEAR_SIN2 * scale
 }
 
 /// P3P on unit rays, without input checks: writes every real solution with positive depths
@@ -372,14 +373,15 @@ fn split_line_pair(c: &Matrix3<f64>) -> Option<[Vector3<f64>; 2]> {
         2
     };
     let pivot = diagonal[k];
-    if !(pivot > 0.0) {
+    if pivot.is_nan() || pivot <= 0.0 {
         return None;
     }
     let p = b.column(k) / libm::sqrt(pivot);
     // C + [p]x = 2 l m^T (up to which line is l): rank one.
     let rank_one = c + p.cross_matrix();
     let (row, col) = rank_one.iamax_full();
-    if !(rank_one[(row, col)].abs() > 0.0) {
+    let largest = rank_one[(row, col)].abs();
+    if largest.is_nan() || largest == 0.0 {
         return None;
     }
     Some([
@@ -409,7 +411,7 @@ fn line_conic_intersections(
     if discriminant < 0.0 && discriminant > -tolerance {
         discriminant = 0.0;
     }
-    if !(discriminant >= 0.0) {
+    if discriminant.is_nan() || discriminant < 0.0 {
         return [None, None];
     }
     let h = -0.5 * (qb + libm::copysign(libm::sqrt(discriminant), qb));

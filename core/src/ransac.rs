@@ -36,8 +36,6 @@ use crate::rng::SplitMix64;
 pub const MIN_CORRESPONDENCES: usize = 4;
 /// Points scored between two checks of the early exit of the MSAC loop.
 const SCORE_BLOCK: usize = 64;
-/// Local optimisation gathers inliers within this multiple of the threshold.
-
 /// Local optimisation refits on the correspondences within this multiple of the threshold;
 /// the count of those (the support) also selects the hypotheses worth optimising.
 const LO_RADIUS_FACTOR: f64 = 4.0;
@@ -242,7 +240,7 @@ fn world_points_are_degenerate(points: &[[f64; 3]]) -> bool {
         },
     );
     let length2 = farthest.norm_squared();
-    if !(length2 > 0.0) {
+    if length2.is_nan() || length2 <= 0.0 {
         return true;
     }
     // Largest squared distance to the line through the origin point and the farthest one.
@@ -250,7 +248,7 @@ fn world_points_are_degenerate(points: &[[f64; 3]]) -> bool {
         .iter()
         .map(|p| (vector(p) - origin).cross(&farthest).norm_squared() / length2)
         .fold(0.0, f64::max);
-    !(off_line2 > DEGENERATE_RELATIVE * length2)
+    off_line2.is_nan() || off_line2 <= DEGENERATE_RELATIVE * length2
 }
 
 /// True when all bearings are the same point of the image plane.
@@ -266,7 +264,7 @@ fn bearings_coincide(bearings: &[[f64; 2]]) -> bool {
         })
         .fold(0.0, f64::max);
     let scale2 = 1.0 + first[0] * first[0] + first[1] * first[1];
-    !(spread2 > DEGENERATE_RELATIVE * scale2)
+    spread2.is_nan() || spread2 <= DEGENERATE_RELATIVE * scale2
 }
 
 /// MSAC cost of a pose, its inliers, and its support: the correspondences within the wider
@@ -597,7 +595,7 @@ impl MsacScorer {
 /// camera.
 fn squared_error(pose: &Pose, bearing: &[f64; 2], point: &[f64; 3]) -> Option<f64> {
     let p = pose.transform(&vector(point));
-    if !(p.z > 0.0) {
+    if p.z.is_nan() || p.z <= 0.0 {
         return None;
     }
     let (ex, ey) = (p.x / p.z - bearing[0], p.y / p.z - bearing[1]);

@@ -244,7 +244,7 @@ fn normal_equations<C: Correspondences>(set: &C, pose: &Pose, loss: &Loss) -> No
     set.for_each(|b, x| {
         let q = rotation * Vector3::new(x[0], x[1], x[2]);
         let p = q + pose.translation;
-        if !(p.z > MIN_DEPTH) {
+        if p.z.is_nan() || p.z <= MIN_DEPTH {
             cost += loss.cost_and_weight(BEHIND_CAMERA_RESIDUAL2).0;
             return;
         }
