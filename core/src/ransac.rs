@@ -178,7 +178,7 @@ pub fn estimate_pose<'w, const N: usize>(
     let mut ransac = Ransac::new(bearings, points, config, workspace);
     let (best, iterations) = ransac.sample_hypotheses().ok_or(Error::NoPoseFound)?;
     let pose = if config.refine {
-        ransac.refine_on_inliers(&best.pose)
+        ransac.refine_on_support(&best.pose)
     } else {
         best.pose
     };
@@ -377,10 +377,11 @@ impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
         best.map(|b| (b, iterations))
     }
 
-    /// Samples needed for an all-inlier sample with the configured confidence when a
-    /// fraction `inliers / n` of the correspondences are inliers.
-    fn iterations_needed(&self, inliers: usize) -> u32 {
-        let ratio = inliers as f64 / self.n as f64;
+    /// Samples needed to draw an all-inlier sample with the configured confidence when a
+    /// fraction `support / n` of the correspondences are inliers:
+    /// `log(1 - confidence) / log(1 - ratio^3)`.
+    fn iterations_needed(&self, support: usize) -> u32 {
+        let ratio = support as f64 / self.n as f64;
         let all_inlier_sample = ratio * ratio * ratio;
         if all_inlier_sample >= 1.0 {
             return 0;
@@ -492,7 +493,7 @@ impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
 
     /// Final Levenberg-Marquardt with a Cauchy loss of scale `threshold` on the
     /// correspondences within the local-optimisation radius, gathered again after each round.
-    fn refine_on_inliers(&mut self, pose: &Pose) -> Pose {
+    fn refine_on_support(&mut self, pose: &Pose) -> Pose {
         let loss = Loss::Cauchy {
             scale: self.config.threshold,
         };
