@@ -118,7 +118,8 @@ pub fn solve(bearings: &[[f64; 2]; 3], points: &[[f64; 3]; 3]) -> Result<P3pSolu
 
 /// Unit ray of a bearing vector `(x/z, y/z)`.
 pub fn unit_ray(bearing: &[f64; 2]) -> Vector3<f64> {
-    Vector3::new(bearing[0], bearing[1], 1.0).normalize()
+    let ray = Vector3::new(bearing[0], bearing[1], 1.0);
+    ray * (1.0 / ray.norm())
 }
 
 fn world_triangle_is_degenerate(world: &[Vector3<f64>; 3]) -> bool {
@@ -155,7 +156,8 @@ pub fn solve_rays(rays: &[Vector3<f64>; 3], world: &[Vector3<f64>; 3], out: &mut
     if !(c3 != 0.0 && c3.is_finite()) {
         return;
     }
-    let (roots, root_count) = real_cubic_roots(c2 / c3, c1 / c3, c0 / c3);
+    let inverse_c3 = 1.0 / c3;
+    let (roots, root_count) = real_cubic_roots(c2 * inverse_c3, c1 * inverse_c3, c0 * inverse_c3);
     for &s in roots.iter().take(root_count) {
         let degenerate = p + q * s;
         let Some(lines) = split_line_pair(&degenerate) else {
@@ -376,7 +378,7 @@ fn split_line_pair(c: &Matrix3<f64>) -> Option<[Vector3<f64>; 2]> {
     if pivot.is_nan() || pivot <= 0.0 {
         return None;
     }
-    let p = b.column(k) / libm::sqrt(pivot);
+    let p = b.column(k) * (1.0 / libm::sqrt(pivot));
     // C + [p]x = 2 l m^T (up to which line is l): rank one.
     let rank_one = c + p.cross_matrix();
     let (row, col) = rank_one.iamax_full();
@@ -395,12 +397,14 @@ fn line_conic_intersections(
     line: &Vector3<f64>,
     conic: &Matrix3<f64>,
 ) -> [Option<Vector3<f64>>; 2] {
-    // Orthonormal basis (u, v) of the plane `line . x = 0`.
+    // Orthogonal basis (u, v) of the plane `line . x = 0`, both of length
+    // sqrt(1 - l_k^2) >= sqrt(2/3) for the unit line and its smallest component k.
+    let line = line * (1.0 / line.norm());
     let smallest = line.iamin();
     let mut axis = Vector3::zeros();
     axis[smallest] = 1.0;
-    let u = line.cross(&axis).normalize();
-    let v = line.cross(&u).normalize();
+    let u = line.cross(&axis);
+    let v = line.cross(&u);
     // (alpha u + beta v)^T C (alpha u + beta v) = A alpha^2 + B alpha beta + C beta^2.
     let cu = conic * u;
     let qa = u.dot(&cu);

@@ -542,25 +542,22 @@ impl MsacScorer {
         }
     }
 
-    /// `(min(r^2, threshold^2), inlier, within the support radius)` of one point; a point
-    /// at or behind the camera costs `threshold^2` and supports nothing.
+    /// Squared reprojection error of one point scaled by its squared depth, `(e^2, z^2)`
+    /// with `r^2 = e^2 / z^2`, and whether it lies in front of the camera.
     #[inline(always)]
-    fn point(&self, x: f64, y: f64, z: f64, u: f64, v: f64) -> (f64, bool, bool) {
+    fn point(&self, x: f64, y: f64, z: f64, u: f64, v: f64) -> (f64, f64, bool) {
         let [r11, r12, r13, r21, r22, r23, r31, r32, r33] = self.r;
         let px = r11 * x + r12 * y + r13 * z + self.t[0];
         let py = r21 * x + r22 * y + r23 * z + self.t[1];
         let pz = r31 * x + r32 * y + r33 * z + self.t[2];
         let (ex, ey) = (px - u * pz, py - v * pz);
-        let r2 = (ex * ex + ey * ey) / (pz * pz);
-        // Non-short-circuit `&` keeps the loop branch-free.
-        let in_front = pz > 0.0;
-        let inlier = in_front & (r2 < self.threshold2);
-        let supported = in_front & (r2 < self.support_limit2);
-        (if inlier { r2 } else { self.threshold2 }, inlier, supported)
+        (ex * ex + ey * ey, pz * pz, pz > 0.0)
     }
 
     /// Score of a block given as columns `x, y, z, u, v` of equal length, summed in four
-    /// interleaved lanes (a fixed order, so the result is reproducible).
+    /// interleaved lanes (a fixed order, so the result is reproducible). Inlier and support
+    /// tests compare `e^2` with `limit^2 z^2`; the division `e^2 / z^2` is only done for a
+    /// group of four holding an inlier.
     fn score_block(&self, columns: &[&[f64]; 5]) -> Score {
         let [xs, ys, zs, us, vs] = columns.map(|c| c.chunks_exact(4));
         let tail = [&xs, &ys, &zs, &us, &vs].map(|c| c.remainder());
@@ -568,21 +565,39 @@ impl MsacScorer {
         let mut inliers = [0usize; 4];
         let mut support = [0usize; 4];
         for ((((x, y), z), u), v) in xs.zip(ys).zip(zs).zip(us).zip(vs) {
+            let mut e2 = [0.0f64; 4];
+            let mut z2 = [0.0f64; 4];
+            let mut inlier = [false; 4];
             for lane in 0..4 {
-                let (c, inlier, supported) =
-                    self.point(x[lane], y[lane], z[lane], u[lane], v[lane]);
-                cost[lane] += c;
-                inliers[lane] += usize::from(inlier);
-                support[lane] += usize::from(supported);
+                let (e, zz, in_front) = self.point(x[lane], y[lane], z[lane], u[lane], v[lane]);
+                // Non-short-circuit `&` keeps the lanes branch-free.
+                inlier[lane] = in_front & (e < self.threshold2 * zz);
+                support[lane] += usize::from(in_front & (e < self.support_limit2 * zz));
+                (e2[lane], z2[lane]) = (e, zz);
+            }
+            if inlier.iter().any(|&f| f) {
+                for lane in 0..4 {
+                    cost[lane] += if inlier[lane] {
+                        e2[lane] / z2[lane]
+                    } else {
+                        self.threshold2
+                    };
+                    inliers[lane] += usize::from(inlier[lane]);
+                }
+            } else {
+                for c in &mut cost {
+                    *c += self.threshold2;
+                }
             }
         }
         let [x, y, z, u, v] = tail;
         let rest = x.iter().zip(y).zip(z).zip(u).zip(v);
         for (lane, ((((&x, &y), &z), &u), &v)) in rest.enumerate() {
-            let (c, inlier, supported) = self.point(x, y, z, u, v);
-            cost[lane] += c;
+            let (e, zz, in_front) = self.point(x, y, z, u, v);
+            let inlier = in_front & (e < self.threshold2 * zz);
+            cost[lane] += if inlier { e / zz } else { self.threshold2 };
             inliers[lane] += usize::from(inlier);
-            support[lane] += usize::from(supported);
+            support[lane] += usize::from(in_front & (e < self.support_limit2 * zz));
         }
         Score {
             cost: (cost[0] + cost[1]) + (cost[2] + cost[3]),
