@@ -57,10 +57,13 @@ fn scene(
     (pose, bearings, points)
 }
 
+/// Bearings and world points of one P3P problem.
+type Triple = ([[f64; 2]; 3], [[f64; 3]; 3]);
+
 fn bench_p3p(c: &mut Criterion) {
     // 64 triples of random correspondences of a 50%-outlier scene: the mix RANSAC solves.
     let (_, bearings, points) = scene(192, 0.5, 1e-3, 1);
-    let triples: Vec<([[f64; 2]; 3], [[f64; 3]; 3])> = (0..64)
+    let triples: Vec<Triple> = (0..64)
         .map(|k| {
             let i = [k, 64 + k, 128 + (k * 7) % 64];
             (i.map(|j| bearings[j]), i.map(|j| points[j]))
