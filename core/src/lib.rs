@@ -5,17 +5,28 @@
 //! const generic, and every bad input is a typed [`Error`], never a panic.
 //!
 //! One keypoint travels through the modules in this order:
-//! pixel -> bearing vector ([`camera`]) -> pose of the query ([`pose`]). The database side
-//! is the geometric-only [`map`]: 3D points, database views and their poses.
+//! pixel -> bearing vector ([`camera`]) -> RANSAC-PnP inlier ([`p3p`], [`ransac`],
+//! [`refine`]) -> pose of the query ([`pose`]). The database side is the geometric-only
+//! [`map`]: 3D points, database views and their poses.
 #![no_std]
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
 
+#[cfg(test)]
+extern crate std;
+
 pub mod camera;
 pub mod error;
 pub mod map;
+pub mod p3p;
 pub mod pose;
+pub mod ransac;
+pub mod refine;
+pub mod rng;
+#[cfg(test)]
+mod test_scene;
 
 pub use camera::Camera;
 pub use error::{Error, Result};
 pub use pose::Pose;
+pub use ransac::{estimate_pose, PnpEstimate, PnpWorkspace, RansacConfig};

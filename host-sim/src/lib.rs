@@ -16,3 +16,5 @@ pub mod parse;
 pub mod protocol;
 pub mod scene;
 pub mod synthetic;
+
+pub mod pnp;

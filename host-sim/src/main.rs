@@ -19,6 +19,8 @@ enum Command {
     Dataset(gomatch_sim::dataset::Args),
     /// Build or inspect a geometric-only map blob.
     Map(gomatch_sim::map::Args),
+    /// Run RANSAC-PnP on the shared synthetic sets and compare with PoseLib.
+    Pnp(gomatch_sim::pnp::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -26,6 +28,7 @@ fn main() -> anyhow::Result<()> {
         Command::Version => println!("gomatch {}", env!("CARGO_PKG_VERSION")),
         Command::Dataset(args) => gomatch_sim::dataset::run(&args)?,
         Command::Map(args) => gomatch_sim::map::run(&args)?,
+        Command::Pnp(args) => gomatch_sim::pnp::run(&args)?,
     }
     Ok(())
 }

@@ -1,0 +1,64 @@
+//! Pixel -> bearing -> pixel round trip for every camera model with realistic distortion
+//! (the bearing convention the pose solver relies on).
+
+use gomatch::camera::{Camera, CameraModel};
+use proptest::prelude::*;
+
+/// Intrinsics of a camera of the given model: focal 0.7 to 1.5 image widths, principal
+/// point near the centre, distortion of real lenses (barrel or pincushion).
+fn camera_strategy() -> impl Strategy<Value = Camera> {
+    let models = prop_oneof![
+        Just(CameraModel::SimplePinhole),
+        Just(CameraModel::Pinhole),
+        Just(CameraModel::SimpleRadial),
+        Just(CameraModel::Radial),
+        Just(CameraModel::OpenCv),
+    ];
+    (
+        models,
+        640u32..2000,
+        0.5f64..0.8,
+        0.7f64..1.5,
+        0.95f64..1.05,
+        -0.02f64..0.02,
+        -0.25f64..0.1,
+        -0.05f64..0.05,
+        -1e-3f64..1e-3,
+        -1e-3f64..1e-3,
+    )
+        .prop_map(
+            |(model, width, aspect, focal, fy_ratio, offset, k1, k2, p1, p2)| {
+                let height = (width as f64 * aspect) as u32;
+                let f = focal * width as f64;
+                let (cx, cy) = (
+                    width as f64 * (0.5 + offset),
+                    height as f64 * (0.5 - offset),
+                );
+                let params: Vec<f64> = match model {
+                    CameraModel::SimplePinhole => vec![f, cx, cy],
+                    CameraModel::Pinhole => vec![f, f * fy_ratio, cx, cy],
+                    CameraModel::SimpleRadial => vec![f, cx, cy, k1],
+                    CameraModel::Radial => vec![f, cx, cy, k1, k2],
+                    CameraModel::OpenCv => vec![f, f * fy_ratio, cx, cy, k1, k2, p1, p2],
+                };
+                Camera::from_colmap(model, width, height, &params).unwrap()
+            },
+        )
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(2000))]
+
+    #[test]
+    fn pixel_bearing_pixel_round_trip_is_below_1e_4_px(
+        camera in camera_strategy(),
+        u in 0.0f64..1.0,
+        v in 0.0f64..1.0,
+    ) {
+        let pixel = [u * camera.width as f64, v * camera.height as f64];
+        let bearing = camera.pixel_to_bearing(pixel).unwrap();
+        let back = camera.bearing_to_pixel(bearing).unwrap();
+        let error = ((back[0] - pixel[0]).powi(2) + (back[1] - pixel[1]).powi(2)).sqrt();
+        prop_assert!(error < 1e-4, "{camera:?} {pixel:?} -> {back:?}: {error} px");
+    }
+}
