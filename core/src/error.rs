@@ -115,6 +115,7 @@ pub enum Error {
     MapUnknownImage {
         /// The unknown id.
         image_id: u32,
+    },
     /// A configuration value is out of its valid range.
     InvalidConfig {
         /// Name of the offending parameter.
@@ -173,6 +174,7 @@ impl fmt::Display for Error {
             }
             Error::MapUnknownImage { image_id } => {
                 write!(f, "the map holds no view of image {image_id}")
+            }
             Error::InvalidConfig { parameter } => {
                 write!(f, "invalid configuration value: {parameter}")
             }
