@@ -12,7 +12,9 @@
 
 pub mod camera;
 pub mod error;
+pub mod nn;
 pub mod pose;
+pub mod weights;
 
 pub use camera::Camera;
 pub use error::{Error, Result};
