@@ -1,0 +1,391 @@
+//! The GoMatch matcher (paper sec. 3, supp. "Architecture Details"): the full forward pass
+//! of one query-view pair in a caller-owned, fixed-capacity workspace.
+//!
+//! ```text
+//! bearings -> encoder -> self -> cross -> self -> L2 -> cost -> Sinkhorn
+//!          -> mutual assignment -> classifier -> MatchSet
+//! ```
+//!
+//! [`Matcher`] holds every buffer; it is built by a `const fn` so it can live in a `static`
+//! (zero-initialised, in `.bss`) and [`Matcher::BYTES`] gives its size for placing it. The
+//! query is encoded once ([`Matcher::encode_query`]) and matched against any number of
+//! database views ([`Matcher::match_view`]); the attention and everything after it are
+//! per pair.
+
+use crate::attention::{
+    cross_layer, knn_graph, neighbour_count, self_layer, Neighbours, SelfScratch, FUSE_BLOCK,
+};
+use crate::classifier::{classify, Descriptors};
+use crate::encoder::encode;
+use crate::error::{Error, Input as Which, Result};
+use crate::nn::{l2_normalize_points, ROW_BLOCK};
+use crate::sinkhorn::{
+    cost_matrix, mutual_assignment, sinkhorn, Match, PlanScalar, SinkhornParams, Transport,
+};
+use crate::weights::{Model, ModelConfig, MAX_FEATURE_DIM};
+
+/// Fewest keypoints (and points) per set: the paper counts a sample with fewer than 10 as
+/// failed (supp. "Keypoint Number Control").
+pub const MIN_KEYPOINTS: usize = 10;
+/// Fewest points the network itself can process (a neighbour graph needs two).
+pub const MIN_POINTS_NETWORK: usize = 2;
+
+/// Intermediate outputs, in forward order (names of the reference fixtures).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    /// Encoder output of the query keypoints.
+    Enc2d,
+    /// Encoder output of the database points.
+    Enc3d,
+    /// After attention layer 0 (self), query.
+    Att0Self2d,
+    /// After attention layer 0 (self), database.
+    Att0Self3d,
+    /// After attention layer 1 (cross), query.
+    Att1Cross2d,
+    /// After attention layer 1 (cross), database.
+    Att1Cross3d,
+    /// After attention layer 2 (self), query.
+    Att2Self2d,
+    /// After attention layer 2 (self), database.
+    Att2Self3d,
+    /// L2-normalised final query descriptors.
+    Desc2dL2,
+    /// L2-normalised final database descriptors.
+    Desc3dL2,
+}
+
+/// Receives intermediate outputs during [`Matcher::match_view_observed`]. Features are
+/// channel-major: channel `c` of point `i` is `x[c * n + i]`.
+pub trait Observer<S: PlanScalar> {
+    /// A feature matrix of `channels x n`.
+    fn features(&mut self, _stage: Stage, _x: &[f32], _channels: usize, _n: usize) {}
+    /// The solved transport (cost, potentials, plan on demand).
+    fn transport(&mut self, _t: &Transport<'_, S>) {}
+}
+
+/// The observer that ignores everything.
+impl<S: PlanScalar> Observer<S> for () {}
+
+/// The matches of one pair: every match of the mutual assignment with its Sinkhorn and
+/// classifier probabilities, sorted by 3D then 2D index (the reference's order).
+#[derive(Debug, Clone, Copy)]
+pub struct MatchSet<const N: usize> {
+    items: [[Match; N]; 2],
+    len: usize,
+    threshold: f32,
+    iterations: usize,
+}
+
+impl<const N: usize> MatchSet<N> {
+    const fn new() -> Self {
+        MatchSet {
+            items: [[Match {
+                i2d: 0,
+                i3d: 0,
+                sinkhorn: 0.0,
+                probability: 0.0,
+            }; N]; 2],
+            len: 0,
+            threshold: 0.0,
+            iterations: 0,
+        }
+    }
+
+    /// All matches of the mutual assignment (capacity `2 N`: the reference's fallback
+    /// keeps the union of both one-way assignments).
+    pub fn as_slice(&self) -> &[Match] {
+        &self.items.as_flattened()[..self.len]
+    }
+
+    /// Number of matches.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// The matches the classifier accepts: probability `>=` the model's threshold.
+    pub fn inliers(&self) -> impl Iterator<Item = &Match> {
+        let threshold = self.threshold;
+        self.as_slice()
+            .iter()
+            .filter(move |m| m.probability >= threshold)
+    }
+
+    /// Sinkhorn iterations run for this pair.
+    pub fn sinkhorn_iterations(&self) -> usize {
+        self.iterations
+    }
+}
+
+/// Workspace and forward pass of the matcher for up to `N` keypoints per set, with the
+/// Sinkhorn cost matrix stored as `S` (`f32` or `half::f16`).
+///
+/// Memory (f32 unless noted, `D` = [`MAX_FEATURE_DIM`]): encoder outputs of the query and
+/// the two working descriptor sets `3 D N`; one scratch pool `3 D N` shared by the
+/// encoder, self attention, cross attention and classifier (never live together); the
+/// `N x N` cost in `S`; small per-point rows. See [`Matcher::BYTES`].
+pub struct Matcher<const N: usize, S: PlanScalar = f32> {
+    /// Query encoder output | query descriptors | database descriptors, `D x N` each.
+    features: [[f32; N]; 3 * MAX_FEATURE_DIM],
+    /// Stage scratch, `3 D x N`.
+    pool: [[f32; N]; 3 * MAX_FEATURE_DIM],
+    /// Row scratch, `2 ROW_BLOCK x N`.
+    rows: [[f32; N]; 2 * ROW_BLOCK],
+    /// Output block of the self-attention fusing conv.
+    fused: [f32; MAX_FEATURE_DIM * FUSE_BLOCK],
+    /// Sinkhorn cost, `N x N` (rows 3D, columns 2D).
+    plan: [[S; N]; N],
+    /// Sinkhorn potentials: `u` (`n3 + 1`) then `v` (`n2 + 1`).
+    potentials: [[f32; N]; 4],
+    graph2d: [Neighbours; N],
+    graph3d: [Neighbours; N],
+    nn12: [u16; N],
+    nn21: [u16; N],
+    matches: MatchSet<N>,
+    query_len: usize,
+    query_config: ModelConfig,
+    query_encoded: bool,
+    /// 0: [`MIN_KEYPOINTS`].
+    min_points: usize,
+}
+
+impl<const N: usize, S: PlanScalar> Default for Matcher<N, S> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<const N: usize, S: PlanScalar> Matcher<N, S> {
+    /// Size of the workspace in bytes (like CMSIS-NN's `*_get_buffer_size`).
+    pub const BYTES: usize = core::mem::size_of::<Self>();
+
+    /// An empty workspace; all-zero, so a `static` lands in `.bss`.
+    pub const fn new() -> Self {
+        const { assert!(N >= MIN_POINTS_NETWORK && N <= u16::MAX as usize) };
+        Matcher {
+            features: [[0.0; N]; 3 * MAX_FEATURE_DIM],
+            pool: [[0.0; N]; 3 * MAX_FEATURE_DIM],
+            rows: [[0.0; N]; 2 * ROW_BLOCK],
+            fused: [0.0; MAX_FEATURE_DIM * FUSE_BLOCK],
+            plan: [[S::ZERO; N]; N],
+            potentials: [[0.0; N]; 4],
+            graph2d: [[0; crate::weights::MAX_KNN]; N],
+            graph3d: [[0; crate::weights::MAX_KNN]; N],
+            nn12: [0; N],
+            nn21: [0; N],
+            matches: MatchSet::new(),
+            query_len: 0,
+            query_config: ModelConfig {
+                feature_dim: 0,
+                encoder_blocks: 0,
+                classifier_dim: 0,
+                classifier_blocks: 0,
+                heads: 0,
+                knn: 0,
+                sinkhorn_iters: 0,
+                sinkhorn_eps: 0.0,
+                sinkhorn_stop: 0.0,
+                match_threshold: 0.0,
+                bin_score: 0.0,
+            },
+            query_encoded: false,
+            min_points: 0,
+        }
+    }
+
+    /// Fewest points accepted per set (default [`MIN_KEYPOINTS`]); values below
+    /// [`MIN_POINTS_NETWORK`] are raised to it.
+    pub fn set_min_points(&mut self, min: usize) {
+        self.min_points = min.max(MIN_POINTS_NETWORK);
+    }
+
+    /// Fewest points accepted per set.
+    pub fn min_points(&self) -> usize {
+        if self.min_points == 0 {
+            MIN_KEYPOINTS
+        } else {
+            self.min_points
+        }
+    }
+
+    /// Encodes the query keypoints (bearing coordinates `(x/z, y/z)`) and builds their
+    /// neighbour graph, for any number of following [`Matcher::match_view`] calls.
+    pub fn encode_query(&mut self, model: &Model<'_>, query: &[[f32; 2]]) -> Result<()> {
+        self.check_points(query, Which::Keypoints)?;
+        self.query_encoded = false;
+        let n = query.len();
+        let d = usize::from(model.config().feature_dim);
+        let enc2d = &mut self.features.as_flattened_mut()[..d * n];
+        encode(
+            &model.encoder,
+            query,
+            enc2d,
+            self.pool.as_flattened_mut(),
+            self.rows.as_flattened_mut(),
+        );
+        let k = neighbour_count(usize::from(model.config().knn), n);
+        knn_graph(query, k, &mut self.graph2d[..n]);
+        self.query_len = n;
+        self.query_config = *model.config();
+        self.query_encoded = true;
+        Ok(())
+    }
+
+    /// Matches the encoded query against one database view: `db` are the 3D points as
+    /// bearing coordinates of the database camera.
+    pub fn match_view(&mut self, model: &Model<'_>, db: &[[f32; 2]]) -> Result<&MatchSet<N>> {
+        self.match_view_observed(model, db, &mut ())
+    }
+
+    /// Encodes the query and matches it against one view.
+    pub fn match_pair(
+        &mut self,
+        model: &Model<'_>,
+        query: &[[f32; 2]],
+        db: &[[f32; 2]],
+    ) -> Result<&MatchSet<N>> {
+        self.encode_query(model, query)?;
+        self.match_view(model, db)
+    }
+
+    /// [`Matcher::match_view`] reporting every intermediate output to `observer`.
+    pub fn match_view_observed<O: Observer<S>>(
+        &mut self,
+        model: &Model<'_>,
+        db: &[[f32; 2]],
+        observer: &mut O,
+    ) -> Result<&MatchSet<N>> {
+        let config = *model.config();
+        if !self.query_encoded || self.query_config != config {
+            return Err(Error::QueryNotEncoded);
+        }
+        self.check_points(db, Which::Points3d)?;
+        let (n2, n3) = (self.query_len, db.len());
+        let d = usize::from(config.feature_dim);
+        let slot = MAX_FEATURE_DIM * N;
+        let rows = self.rows.as_flattened_mut();
+        let pool = self.pool.as_flattened_mut();
+        let (enc2d, descriptors) = self.features.as_flattened_mut().split_at_mut(slot);
+        let (desc2d, desc3d) = descriptors.split_at_mut(slot);
+        let (desc2d, desc3d) = (&mut desc2d[..d * n2], &mut desc3d[..d * n3]);
+
+        encode(&model.encoder, db, desc3d, pool, rows);
+        let k3 = neighbour_count(usize::from(config.knn), n3);
+        let k2 = neighbour_count(usize::from(config.knn), n2);
+        knn_graph(db, k3, &mut self.graph3d[..n3]);
+        desc2d.copy_from_slice(&enc2d[..d * n2]);
+        observer.features(Stage::Enc2d, desc2d, d, n2);
+        observer.features(Stage::Enc3d, desc3d, d, n3);
+
+        let stages = [
+            (Stage::Att0Self2d, Stage::Att0Self3d),
+            (Stage::Att1Cross2d, Stage::Att1Cross3d),
+            (Stage::Att2Self2d, Stage::Att2Self3d),
+        ];
+        for (layer, (stage2d, stage3d)) in stages.into_iter().enumerate() {
+            if layer == 1 {
+                let heads = usize::from(config.heads);
+                cross_layer(&model.cross, heads, desc2d, n2, desc3d, n3, pool);
+                cross_layer(&model.cross, heads, desc3d, n3, desc2d, n2, pool);
+            } else {
+                let w = &model.self_layers[layer / 2];
+                let sets = [
+                    (&mut *desc2d, n2, &self.graph2d[..n2], k2),
+                    (&mut *desc3d, n3, &self.graph3d[..n3], k3),
+                ];
+                for (x, n, graph, k) in sets {
+                    let (x1, x2) = pool.split_at_mut(d * n);
+                    let (block_rows, maxima) = rows.split_at_mut(ROW_BLOCK * n);
+                    let scratch = SelfScratch {
+                        x1,
+                        x2,
+                        rows: block_rows,
+                        maxima,
+                        fused: &mut self.fused,
+                    };
+                    self_layer(w, graph, k, x, n, scratch);
+                }
+            }
+            observer.features(stage2d, desc2d, d, n2);
+            observer.features(stage3d, desc3d, d, n3);
+        }
+
+        l2_normalize_points(desc2d, d, n2, rows);
+        l2_normalize_points(desc3d, d, n3, rows);
+        observer.features(Stage::Desc2dL2, desc2d, d, n2);
+        observer.features(Stage::Desc3dL2, desc3d, d, n3);
+
+        let plan = self.plan.as_flattened_mut();
+        cost_matrix(desc3d, n3, desc2d, n2, d, plan, rows);
+        let params = SinkhornParams {
+            eps: config.sinkhorn_eps,
+            max_iters: usize::from(config.sinkhorn_iters),
+            stop: config.sinkhorn_stop,
+            bin_score: config.bin_score,
+        };
+        let (u, v) = self.potentials.as_flattened_mut().split_at_mut(n3 + 1);
+        let iterations = sinkhorn(plan, n3, n2, &params, u, v, rows);
+        let transport = Transport {
+            cost: &plan[..n3 * n2],
+            u: &u[..n3 + 1],
+            v: &v[..n2 + 1],
+            n3,
+            n2,
+            params,
+            iterations,
+        };
+        observer.transport(&transport);
+        let items = self.matches.items.as_flattened_mut();
+        let count = mutual_assignment(&transport, &mut self.nn12, &mut self.nn21, rows, items);
+
+        let descriptors = Descriptors {
+            memory: &mut self.features.as_flattened_mut()[slot..],
+            offset3: slot,
+            n2,
+            n3,
+        };
+        classify(
+            &model.classifier,
+            descriptors,
+            &mut items[..count],
+            pool,
+            rows,
+        );
+        self.matches.len = count;
+        self.matches.threshold = config.match_threshold;
+        self.matches.iterations = iterations;
+        Ok(&self.matches)
+    }
+
+    /// Checks count and finiteness of one input set.
+    fn check_points(&self, points: &[[f32; 2]], which: Which) -> Result<()> {
+        if points.len() > N {
+            return Err(Error::CapacityExceeded {
+                capacity: N,
+                requested: points.len(),
+            });
+        }
+        let needed = self.min_points();
+        if points.len() < needed {
+            return Err(Error::TooFewPoints {
+                needed,
+                found: points.len(),
+            });
+        }
+        if let Some(index) = points
+            .iter()
+            .position(|p| !p[0].is_finite() || !p[1].is_finite())
+        {
+            return Err(Error::NonFinite {
+                input: which,
+                index,
+            });
+        }
+        Ok(())
+    }
+}
