@@ -15,11 +15,14 @@ struct Cli {
 enum Command {
     /// Print the version of the core library.
     Version,
+    /// Run the matcher on a reference fixture and compare every stage with it.
+    Conform(gomatch_sim::conform::Args),
 }
 
 fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Version => println!("gomatch {}", env!("CARGO_PKG_VERSION")),
+        Command::Conform(args) => gomatch_sim::conform::run(&args)?,
     }
     Ok(())
 }

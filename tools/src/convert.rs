@@ -1,0 +1,473 @@
+//! `gomatch-tools convert`: a float32 safetensors checkpoint in the reference layout
+//! (`shared/reference/params.tsv`) to a model blob (`gomatch::weights`).
+//!
+//! Feature width and block counts come from the tensor shapes; the other hyper-parameters
+//! from the optional `__metadata__["gomatch_config"]` JSON (defaults: 4 heads, k 10,
+//! 20 iterations, eps 0.1, threshold 0.5). Anything else is refused with the name of the
+//! offending tensor. The converter folds, in f64, `conv1 * preconv` of every residual
+//! block and splits each EdgeConv weight into its centre (`Wa - Wb`) and neighbour (`Wb`)
+//! parts; biases followed by an instance norm are dropped (the norm removes them exactly).
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use anyhow::{bail, ensure, Context, Result};
+use gomatch::weights::{
+    preamble, tensor_count, tensor_spec, BlobHeader, ModelConfig, Precision, TensorRecord,
+};
+use safetensors::{Dtype, SafeTensors};
+
+/// Command-line arguments of `convert`.
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Float32 safetensors checkpoint in the reference layout.
+    #[arg(long)]
+    pub input: PathBuf,
+    /// Weight precision of the blob.
+    #[arg(long, value_enum, default_value = "f32")]
+    pub precision: PrecisionArg,
+    /// Output model blob.
+    #[arg(long)]
+    pub output: PathBuf,
+}
+
+/// Weight precision on the command line.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PrecisionArg {
+    /// 32-bit float.
+    F32,
+    /// 16-bit float.
+    F16,
+    /// 8-bit integer, symmetric per output channel.
+    Int8,
+}
+
+impl From<PrecisionArg> for Precision {
+    fn from(p: PrecisionArg) -> Self {
+        match p {
+            PrecisionArg::F32 => Precision::F32,
+            PrecisionArg::F16 => Precision::F16,
+            PrecisionArg::Int8 => Precision::Int8,
+        }
+    }
+}
+
+/// Runs the command.
+pub fn run(args: &Args) -> Result<()> {
+    let bytes = std::fs::read(&args.input)
+        .with_context(|| format!("reading {}", args.input.display()))?;
+    let (blob, config) = convert(&bytes, args.precision.into())?;
+    std::fs::write(&args.output, &blob)
+        .with_context(|| format!("writing {}", args.output.display()))?;
+    println!(
+        "wrote {} ({} bytes, {:?}): d={} encoder blocks={} classifier {}x{} heads={} k={} \
+         iters={} eps={} threshold={} bin={}",
+        args.output.display(),
+        blob.len(),
+        Precision::from(args.precision),
+        config.feature_dim,
+        config.encoder_blocks,
+        config.classifier_dim,
+        config.classifier_blocks,
+        config.heads,
+        config.knn,
+        config.sinkhorn_iters,
+        config.sinkhorn_eps,
+        config.match_threshold,
+        config.bin_score
+    );
+    Ok(())
+}
+
+const RAW: &str = "matcher.raw_matcher.";
+const CLS: &str = "matcher.classifier.";
+
+/// A float matrix `rows x cols`, row-major, with an optional bias.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FloatLinear {
+    /// Output channels.
+    pub rows: usize,
+    /// Input channels.
+    pub cols: usize,
+    /// Weights.
+    pub weights: Vec<f32>,
+    /// Bias (empty for none).
+    pub bias: Vec<f32>,
+}
+
+/// Converts checkpoint bytes into a blob of the given precision.
+pub fn convert(safetensors: &[u8], precision: Precision) -> Result<(Vec<u8>, ModelConfig)> {
+    let checkpoint = Checkpoint::parse(safetensors)?;
+    let config = checkpoint.config()?;
+    let tensors = checkpoint.blob_tensors(&config)?;
+    Ok((write_blob(&config, precision, &tensors)?, config))
+}
+
+/// Every tensor of the checkpoint, checked for dtype and finiteness, keyed by name.
+struct Checkpoint {
+    tensors: BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+    metadata: Option<String>,
+}
+
+impl Checkpoint {
+    fn parse(bytes: &[u8]) -> Result<Self> {
+        let (_, metadata) =
+            SafeTensors::read_metadata(bytes).context("not a safetensors file")?;
+        let st = SafeTensors::deserialize(bytes).context("not a safetensors file")?;
+        let mut tensors = BTreeMap::new();
+        for (name, view) in st.tensors() {
+            ensure!(
+                view.dtype() == Dtype::F32,
+                "tensor {name}: dtype {:?}, expected F32",
+                view.dtype()
+            );
+            let values: Vec<f32> = view
+                .data()
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect();
+            if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+                bail!("tensor {name}: non-finite value at flat index {i}");
+            }
+            tensors.insert(name, (view.shape().to_vec(), values));
+        }
+        let metadata = metadata
+            .metadata()
+            .as_ref()
+            .and_then(|m| m.get("gomatch_config").cloned());
+        Ok(Checkpoint { tensors, metadata })
+    }
+
+    fn count_blocks(&self, prefix: &str) -> usize {
+        (0..)
+            .take_while(|i| {
+                self.tensors
+                    .contains_key(&format!("{prefix}conv_{i}.preconv.0.weight"))
+            })
+            .count()
+    }
+
+    /// Infers the shape parameters and reads the metadata for the rest.
+    fn config(&self) -> Result<ModelConfig> {
+        let input = format!("{RAW}kp2d_enc.conv_in.0.weight");
+        let (shape, _) = self
+            .tensors
+            .get(&input)
+            .with_context(|| format!("missing tensor {input}"))?;
+        let d = shape[0];
+        let cls_input = format!("{CLS}encoder.conv_in.0.weight");
+        let (cls_shape, _) = self
+            .tensors
+            .get(&cls_input)
+            .with_context(|| format!("missing tensor {cls_input}"))?;
+        let mut config = ModelConfig {
+            feature_dim: u16::try_from(d).context("feature width")?,
+            encoder_blocks: u8::try_from(self.count_blocks(&format!("{RAW}kp2d_enc.")))?,
+            classifier_dim: u16::try_from(cls_shape[0]).context("classifier width")?,
+            classifier_blocks: u8::try_from(self.count_blocks(&format!("{CLS}encoder.")))?,
+            bin_score: 1.0,
+            ..ModelConfig::REFERENCE
+        };
+        if let Some(json) = &self.metadata {
+            apply_metadata(&mut config, json)?;
+        }
+        let bin = format!("{RAW}bin_score");
+        let (_, value) = self
+            .tensors
+            .get(&bin)
+            .with_context(|| format!("missing tensor {bin}"))?;
+        config.bin_score = *value.first().context("bin_score is empty")?;
+        config
+            .validate()
+            .map_err(|e| anyhow::anyhow!("configuration not supported: {e}"))?;
+        Ok(config)
+    }
+
+    /// The expected reference names and shapes for `config`.
+    fn expected(config: &ModelConfig) -> Vec<(String, Vec<usize>)> {
+        let d = usize::from(config.feature_dim);
+        let c = usize::from(config.classifier_dim);
+        let mut out = vec![(format!("{RAW}bin_score"), vec![])];
+        for enc in ["kp2d_enc", "kp3d_enc"] {
+            let p = format!("{RAW}{enc}.");
+            point_resnet(&mut out, &p, 2, d, usize::from(config.encoder_blocks));
+        }
+        for layer in [0, 2] {
+            let p = format!("{RAW}attention.att.layers.{layer}.");
+            out.push((format!("{p}conv1.weight"), vec![d, 2 * d, 1, 1]));
+            out.push((format!("{p}conv2.weight"), vec![2 * d, 2 * d, 1, 1]));
+            out.push((format!("{p}conv3.weight"), vec![d, 4 * d, 1, 1]));
+        }
+        let p = format!("{RAW}attention.att.layers.1.");
+        for name in ["attn.merge", "attn.proj.0", "attn.proj.1", "attn.proj.2"] {
+            out.push((format!("{p}{name}.weight"), vec![d, d, 1]));
+            out.push((format!("{p}{name}.bias"), vec![d]));
+        }
+        out.push((format!("{p}mlp.0.weight"), vec![2 * d, 2 * d, 1]));
+        out.push((format!("{p}mlp.0.bias"), vec![2 * d]));
+        out.push((format!("{p}mlp.3.weight"), vec![d, 2 * d, 1]));
+        out.push((format!("{p}mlp.3.bias"), vec![d]));
+        let p = format!("{CLS}encoder.");
+        point_resnet(&mut out, &p, 2 * d, c, usize::from(config.classifier_blocks));
+        out.push((format!("{CLS}conv_out.weight"), vec![1, c, 1]));
+        out.push((format!("{CLS}conv_out.bias"), vec![1]));
+        out
+    }
+
+    /// Checks names, shapes and the shared encoder copy; returns the blob tensors in
+    /// blob order.
+    fn blob_tensors(&self, config: &ModelConfig) -> Result<Vec<FloatLinear>> {
+        let expected = Self::expected(config);
+        for (name, shape) in &expected {
+            let (found, _) = self
+                .tensors
+                .get(name)
+                .with_context(|| format!("missing tensor {name}"))?;
+            ensure!(
+                found == shape,
+                "tensor {name}: shape {found:?}, expected {shape:?}"
+            );
+        }
+        for name in self.tensors.keys() {
+            ensure!(
+                expected.iter().any(|(n, _)| n == name),
+                "unexpected tensor {name} (not in the reference layout for this configuration)"
+            );
+        }
+        for (name, _) in expected.iter().filter(|(n, _)| n.contains("kp3d_enc.")) {
+            let twin = name.replace("kp3d_enc.", "kp2d_enc.");
+            ensure!(
+                self.tensors[name].1 == self.tensors[&twin].1,
+                "tensor {name} differs from {twin}: the encoder must be shared"
+            );
+        }
+        let w = |name: &str| -> &[f32] { &self.tensors[name].1 };
+        let d = usize::from(config.feature_dim);
+        let c = usize::from(config.classifier_dim);
+        let mut out = Vec::new();
+        let enc = format!("{RAW}kp2d_enc.");
+        out.push(linear(w(&format!("{enc}conv_in.0.weight")), d, 2, w(&format!("{enc}conv_in.0.bias"))));
+        residual_blocks(&mut out, &w, &enc, d, usize::from(config.encoder_blocks));
+        for layer in [0, 2] {
+            let p = format!("{RAW}attention.att.layers.{layer}.");
+            let (centre, neighbour) = split_edge(w(&format!("{p}conv1.weight")), d, d);
+            out.push(centre);
+            out.push(neighbour);
+            let (centre, neighbour) = split_edge(w(&format!("{p}conv2.weight")), 2 * d, d);
+            out.push(centre);
+            out.push(neighbour);
+            out.push(linear(w(&format!("{p}conv3.weight")), d, 4 * d, &[]));
+        }
+        let p = format!("{RAW}attention.att.layers.1.");
+        for name in ["attn.proj.0", "attn.proj.1", "attn.proj.2", "attn.merge"] {
+            out.push(linear(
+                w(&format!("{p}{name}.weight")),
+                d,
+                d,
+                w(&format!("{p}{name}.bias")),
+            ));
+        }
+        out.push(linear(w(&format!("{p}mlp.0.weight")), 2 * d, 2 * d, &[]));
+        out.push(linear(
+            w(&format!("{p}mlp.3.weight")),
+            d,
+            2 * d,
+            w(&format!("{p}mlp.3.bias")),
+        ));
+        let p = format!("{CLS}encoder.");
+        out.push(linear(w(&format!("{p}conv_in.0.weight")), c, 2 * d, w(&format!("{p}conv_in.0.bias"))));
+        residual_blocks(&mut out, &w, &p, c, usize::from(config.classifier_blocks));
+        out.push(linear(
+            w(&format!("{CLS}conv_out.weight")),
+            1,
+            c,
+            w(&format!("{CLS}conv_out.bias")),
+        ));
+        Ok(out)
+    }
+}
+
+fn point_resnet(out: &mut Vec<(String, Vec<usize>)>, p: &str, input: usize, width: usize, blocks: usize) {
+    out.push((format!("{p}conv_in.0.weight"), vec![width, input, 1]));
+    out.push((format!("{p}conv_in.0.bias"), vec![width]));
+    for b in 0..blocks {
+        for conv in ["preconv", "conv1", "conv2"] {
+            out.push((format!("{p}conv_{b}.{conv}.0.weight"), vec![width, width, 1]));
+            out.push((format!("{p}conv_{b}.{conv}.0.bias"), vec![width]));
+        }
+    }
+}
+
+fn linear(weights: &[f32], rows: usize, cols: usize, bias: &[f32]) -> FloatLinear {
+    FloatLinear {
+        rows,
+        cols,
+        weights: weights.to_vec(),
+        bias: bias.to_vec(),
+    }
+}
+
+/// `conv1 * preconv` (in f64) and `conv2` of each residual block, biases dropped.
+fn residual_blocks<'a>(
+    out: &mut Vec<FloatLinear>,
+    w: &impl Fn(&str) -> &'a [f32],
+    p: &str,
+    width: usize,
+    blocks: usize,
+) {
+    for b in 0..blocks {
+        let pre = w(&format!("{p}conv_{b}.preconv.0.weight"));
+        let conv1 = w(&format!("{p}conv_{b}.conv1.0.weight"));
+        let mut fused = vec![0.0f32; width * width];
+        for o in 0..width {
+            for i in 0..width {
+                let s: f64 = (0..width)
+                    .map(|k| f64::from(conv1[o * width + k]) * f64::from(pre[k * width + i]))
+                    .sum();
+                fused[o * width + i] = s as f32;
+            }
+        }
+        out.push(FloatLinear {
+            rows: width,
+            cols: width,
+            weights: fused,
+            bias: vec![],
+        });
+        out.push(linear(w(&format!("{p}conv_{b}.conv2.0.weight")), width, width, &[]));
+    }
+}
+
+/// Splits an EdgeConv weight `rows x 2 half` on `[f_i, f_j - f_i]` into the centre part
+/// `Wa - Wb` (in f64) and the neighbour part `Wb`.
+fn split_edge(w: &[f32], rows: usize, half: usize) -> (FloatLinear, FloatLinear) {
+    let mut centre = vec![0.0f32; rows * half];
+    let mut neighbour = vec![0.0f32; rows * half];
+    for r in 0..rows {
+        for k in 0..half {
+            let a = w[r * 2 * half + k];
+            let b = w[r * 2 * half + half + k];
+            centre[r * half + k] = (f64::from(a) - f64::from(b)) as f32;
+            neighbour[r * half + k] = b;
+        }
+    }
+    let make = |weights| FloatLinear {
+        rows,
+        cols: half,
+        weights,
+        bias: vec![],
+    };
+    (make(centre), make(neighbour))
+}
+
+/// Applies the `gomatch_config` metadata JSON.
+fn apply_metadata(config: &mut ModelConfig, json: &str) -> Result<()> {
+    let value: serde_json::Value =
+        serde_json::from_str(json).context("gomatch_config metadata is not JSON")?;
+    let object = value
+        .as_object()
+        .context("gomatch_config metadata is not a JSON object")?;
+    for (key, v) in object {
+        let int = || -> Result<u64> {
+            v.as_u64()
+                .with_context(|| format!("gomatch_config.{key}: not a non-negative integer"))
+        };
+        let real = || -> Result<f32> {
+            v.as_f64()
+                .map(|x| x as f32)
+                .with_context(|| format!("gomatch_config.{key}: not a number"))
+        };
+        let agree = |name: &str, found: u64, shape: u64| -> Result<()> {
+            ensure!(
+                found == shape,
+                "gomatch_config.{name} = {found} disagrees with the tensor shapes ({shape})"
+            );
+            Ok(())
+        };
+        match key.as_str() {
+            "feature_dim" => agree(key, int()?, u64::from(config.feature_dim))?,
+            "encoder_blocks" => agree(key, int()?, u64::from(config.encoder_blocks))?,
+            "classifier_blocks" => agree(key, int()?, u64::from(config.classifier_blocks))?,
+            "heads" => config.heads = u8::try_from(int()?).context("heads")?,
+            "knn" => config.knn = u8::try_from(int()?).context("knn")?,
+            "sinkhorn_iters" => {
+                config.sinkhorn_iters = u8::try_from(int()?).context("sinkhorn_iters")?
+            }
+            "sinkhorn_eps" => config.sinkhorn_eps = real()?,
+            "match_threshold" => config.match_threshold = real()?,
+            other => bail!("gomatch_config: unknown key {other}"),
+        }
+    }
+    Ok(())
+}
+
+/// Serialises the blob: preamble, header, tensor records, CRC-32.
+pub fn write_blob(config: &ModelConfig, precision: Precision, tensors: &[FloatLinear]) -> Result<Vec<u8>> {
+    ensure!(
+        tensors.len() == tensor_count(config),
+        "{} tensors for a configuration of {}",
+        tensors.len(),
+        tensor_count(config)
+    );
+    let mut blob = preamble().to_vec();
+    let header = BlobHeader {
+        config: *config,
+        precision,
+        tensor_count: u16::try_from(tensors.len())?,
+    };
+    blob.extend(postcard::to_allocvec(&header)?);
+    for (index, t) in tensors.iter().enumerate() {
+        let spec = tensor_spec(config, index).context("tensor index past the layout")?;
+        ensure!(
+            spec.rows == t.rows && spec.cols == t.cols && spec.bias == !t.bias.is_empty(),
+            "tensor {}: {}x{} (bias {}), layout expects {}x{} (bias {})",
+            spec.name,
+            t.rows,
+            t.cols,
+            !t.bias.is_empty(),
+            spec.rows,
+            spec.cols,
+            spec.bias
+        );
+        let (weights, scales) = encode_weights(t, precision);
+        let bias: Vec<u8> = t.bias.iter().flat_map(|b| b.to_le_bytes()).collect();
+        let record = TensorRecord {
+            rows: t.rows as u32,
+            cols: t.cols as u32,
+            weights: &weights,
+            scales: &scales,
+            bias: &bias,
+        };
+        blob.extend(postcard::to_allocvec(&record)?);
+    }
+    let crc = gomatch::weights::crc32(&blob);
+    blob.extend(crc.to_le_bytes());
+    Ok(blob)
+}
+
+/// Weight bytes and (int8) scale bytes of one tensor.
+fn encode_weights(t: &FloatLinear, precision: Precision) -> (Vec<u8>, Vec<u8>) {
+    match precision {
+        Precision::F32 => (t.weights.iter().flat_map(|w| w.to_le_bytes()).collect(), vec![]),
+        Precision::F16 => (
+            t.weights
+                .iter()
+                .flat_map(|&w| half::f16::from_f32(w).to_bits().to_le_bytes())
+                .collect(),
+            vec![],
+        ),
+        Precision::Int8 => {
+            let mut weights = Vec::with_capacity(t.weights.len());
+            let mut scales = Vec::with_capacity(t.rows * 4);
+            for row in t.weights.chunks_exact(t.cols) {
+                let max = row.iter().fold(0.0f32, |m, w| m.max(w.abs()));
+                let scale = if max > 0.0 { max / 127.0 } else { 1.0 };
+                weights.extend(
+                    row.iter()
+                        .map(|&w| ((w / scale).round().clamp(-127.0, 127.0) as i8) as u8),
+                );
+                scales.extend(scale.to_le_bytes());
+            }
+            (weights, scales)
+        }
+    }
+}
