@@ -229,7 +229,9 @@ pub struct TensorRecord<'a> {
     pub rows: u32,
     /// Input channels.
     pub cols: u32,
-    /// `rows * cols` weights, row-major, in the blob's precision.
+    /// Precision of this tensor's weights.
+    pub precision: Precision,
+    /// `rows * cols` weights, row-major, in `precision`.
     #[serde(borrow)]
     pub weights: &'a [u8],
     /// Int8 only: `rows` f32 scales; empty otherwise.
@@ -585,7 +587,7 @@ impl<'a> Model<'a> {
                     found: index,
                 });
             };
-            let linear = check_record(&record, &spec, header.precision)?;
+            let linear = check_record(&record, &spec)?;
             model.place(index, linear);
         }
         if !rest.is_empty() {
@@ -700,11 +702,8 @@ fn check_envelope(blob: &[u8]) -> Result<&[u8]> {
 }
 
 /// Checks one record against its expected shape and byte lengths.
-fn check_record<'a>(
-    record: &TensorRecord<'a>,
-    spec: &TensorSpec,
-    precision: Precision,
-) -> Result<Linear<'a>> {
+fn check_record<'a>(record: &TensorRecord<'a>, spec: &TensorSpec) -> Result<Linear<'a>> {
+    let precision = record.precision;
     let (rows, cols) = (record.rows as usize, record.cols as usize);
     if rows != spec.rows || cols != spec.cols {
         return Err(Error::TensorShape {

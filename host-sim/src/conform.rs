@@ -80,10 +80,10 @@ pub struct Report {
     pub matches: usize,
     /// The reference's matches.
     pub reference_matches: usize,
-    /// Our matches missing from the reference.
-    pub extra_matches: usize,
-    /// Reference matches we miss.
-    pub missing_matches: usize,
+    /// Our matches `(i3d, i2d)` that the reference does not have.
+    pub extra_matches: Vec<(i64, i64)>,
+    /// Reference matches `(i3d, i2d)` we do not have.
+    pub missing_matches: Vec<(i64, i64)>,
 }
 
 /// Runs the command.
@@ -167,6 +167,16 @@ pub fn conform(
             prob_diff = prob_diff.max(f64::from((p - r).abs()));
         }
     }
+    let extra: Vec<(i64, i64)> = ours_set
+        .iter()
+        .filter(|k| !reference.contains_key(k))
+        .copied()
+        .collect();
+    let missing: Vec<(i64, i64)> = reference
+        .keys()
+        .filter(|k| !ours_set.contains(k))
+        .copied()
+        .collect();
     let mut stages = std::mem::take(&mut observer.stages);
     stages.insert("match_probs".into(), prob_diff);
     Ok(Report {
@@ -192,8 +202,8 @@ pub fn conform(
         },
         matches: ours_set.len(),
         reference_matches: reference.len(),
-        extra_matches: ours_set.len() - common,
-        missing_matches: reference.len() - common,
+        extra_matches: extra,
+        missing_matches: missing,
     })
 }
 
