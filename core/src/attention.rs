@@ -257,6 +257,9 @@ fn attend(heads: usize, q: &mut [f32], nx: usize, k: &[f32], v: &[f32], ns: usiz
     }
 }
 
+/// Queries processed together (independent accumulation chains, shared key/value loads).
+const QUERY_BLOCK: usize = 4;
+
 /// Scaled dot-product attention with `H` interleaved heads (head dimension `d / H`),
 /// softmax over the source points computed online block by block (eq. 6-7).
 fn attend_heads<const H: usize>(
@@ -268,60 +271,92 @@ fn attend_heads<const H: usize>(
     d: usize,
 ) {
     let sqrt_dim = libm::sqrtf((d / H) as f32);
-    let mut query = [0.0f32; MAX_FEATURE_DIM];
-    let mut acc = [0.0f32; MAX_FEATURE_DIM];
-    let mut scores = [[0.0f32; H]; SOURCE_BLOCK];
-    for qi in q[..nx * d].chunks_exact_mut(d) {
-        query[..d].copy_from_slice(qi);
-        acc[..d].fill(0.0);
-        let mut max = [f32::NEG_INFINITY; H];
-        let mut total = [0.0f32; H];
+    let mut queries = [[0.0f32; MAX_FEATURE_DIM]; QUERY_BLOCK];
+    let mut acc = [[0.0f32; MAX_FEATURE_DIM]; QUERY_BLOCK];
+    let mut scores = [[[0.0f32; H]; QUERY_BLOCK]; SOURCE_BLOCK];
+    for block in q[..nx * d].chunks_mut(QUERY_BLOCK * d) {
+        let count = block.len() / d;
+        for (t, query) in queries.iter_mut().enumerate() {
+            if t < count {
+                query[..d].copy_from_slice(&block[t * d..(t + 1) * d]);
+            } else {
+                query[..d].fill(0.0);
+            }
+        }
+        for a in acc.iter_mut() {
+            a[..d].fill(0.0);
+        }
+        let mut max = [[f32::NEG_INFINITY; H]; QUERY_BLOCK];
+        let mut total = [[0.0f32; H]; QUERY_BLOCK];
         let mut j0 = 0;
         while j0 < ns {
             let len = SOURCE_BLOCK.min(ns - j0);
             let mut block_max = max;
             for (t, s) in scores[..len].iter_mut().enumerate() {
                 let kj = &k[(j0 + t) * d..(j0 + t + 1) * d];
-                let mut dot = [0.0f32; H];
-                for (qc, kc) in query[..d].chunks_exact(H).zip(kj.chunks_exact(H)) {
-                    for h in 0..H {
-                        dot[h] += qc[h] * kc[h];
+                let mut dot = [[0.0f32; H]; QUERY_BLOCK];
+                for (c0, kc) in kj.chunks_exact(H).enumerate() {
+                    for (dq, query) in dot.iter_mut().zip(&queries) {
+                        let qc = &query[c0 * H..c0 * H + H];
+                        for h in 0..H {
+                            dq[h] += qc[h] * kc[h];
+                        }
                     }
                 }
-                for h in 0..H {
-                    s[h] = dot[h] / sqrt_dim;
-                    block_max[h] = block_max[h].max(s[h]);
+                for ((sq, dq), bq) in s.iter_mut().zip(&dot).zip(block_max.iter_mut()) {
+                    for h in 0..H {
+                        sq[h] = dq[h] / sqrt_dim;
+                        bq[h] = bq[h].max(sq[h]);
+                    }
                 }
             }
-            let mut correction = [0.0f32; H];
-            for h in 0..H {
-                correction[h] = exp(max[h] - block_max[h]);
-                total[h] *= correction[h];
-            }
-            for a in acc[..d].chunks_exact_mut(H) {
+            for ((a, tq), (mq, bq)) in acc
+                .iter_mut()
+                .zip(total.iter_mut())
+                .zip(max.iter().zip(&block_max))
+            {
+                let mut correction = [0.0f32; H];
                 for h in 0..H {
-                    a[h] *= correction[h];
+                    correction[h] = exp(mq[h] - bq[h]);
+                    tq[h] *= correction[h];
+                }
+                for ac in a[..d].chunks_exact_mut(H) {
+                    for h in 0..H {
+                        ac[h] *= correction[h];
+                    }
                 }
             }
             max = block_max;
             for (t, s) in scores[..len].iter().enumerate() {
                 let vj = &v[(j0 + t) * d..(j0 + t + 1) * d];
-                let mut p = [0.0f32; H];
-                for h in 0..H {
-                    p[h] = exp(s[h] - max[h]);
-                    total[h] += p[h];
-                }
-                for (a, vc) in acc[..d].chunks_exact_mut(H).zip(vj.chunks_exact(H)) {
+                for ((a, tq), (sq, mq)) in acc
+                    .iter_mut()
+                    .zip(total.iter_mut())
+                    .zip(s.iter().zip(&max))
+                {
+                    let mut p = [0.0f32; H];
                     for h in 0..H {
-                        a[h] += p[h] * vc[h];
+                        p[h] = exp(sq[h] - mq[h]);
+                        tq[h] += p[h];
+                    }
+                    for (ac, vc) in a[..d].chunks_exact_mut(H).zip(vj.chunks_exact(H)) {
+                        for h in 0..H {
+                            ac[h] += p[h] * vc[h];
+                        }
                     }
                 }
             }
             j0 += len;
         }
-        for (out, a) in qi.chunks_exact_mut(H).zip(acc[..d].chunks_exact(H)) {
-            for h in 0..H {
-                out[h] = a[h] / total[h];
+        for (t, out) in block.chunks_exact_mut(d).enumerate() {
+            for ((o, a), tq) in out
+                .chunks_exact_mut(H)
+                .zip(acc[t][..d].chunks_exact(H))
+                .zip(core::iter::repeat(&total[t]))
+            {
+                for h in 0..H {
+                    o[h] = a[h] / tq[h];
+                }
             }
         }
     }
