@@ -101,7 +101,9 @@ pub fn self_layer(
     while b0 < n {
         let len = FUSE_BLOCK.min(n - b0);
         let input = Input::parts([&*x, &*s.x1, &*s.x2], [d, d, 2 * d], n).columns(b0, len);
-        linear(&w.fuse, &input, 0..d, |r, i0, v| store(s.fused, len, r, i0, v));
+        linear(&w.fuse, &input, 0..d, |r, i0, v| {
+            store(s.fused, len, r, i0, v)
+        });
         for r in 0..d {
             x[r * n + b0..r * n + b0 + len].copy_from_slice(&s.fused[r * len..(r + 1) * len]);
         }
@@ -134,7 +136,9 @@ fn edge_conv(
     while r0 < channels {
         let r1 = (r0 + crate::nn::ROW_BLOCK).min(channels);
         linear(centre, input, r0..r1, |r, i0, v| store(out, n, r, i0, v));
-        linear(neighbour, input, r0..r1, |r, i0, v| store(rows, n, r - r0, i0, v));
+        linear(neighbour, input, r0..r1, |r, i0, v| {
+            store(rows, n, r - r0, i0, v)
+        });
         for r in r0..r1 {
             finish_edge_channel(
                 &mut out[r * n..(r + 1) * n],
@@ -329,10 +333,8 @@ fn attend_heads<const H: usize>(
             max = block_max;
             for (t, s) in scores[..len].iter().enumerate() {
                 let vj = &v[(j0 + t) * d..(j0 + t + 1) * d];
-                for ((a, tq), (sq, mq)) in acc
-                    .iter_mut()
-                    .zip(total.iter_mut())
-                    .zip(s.iter().zip(&max))
+                for ((a, tq), (sq, mq)) in
+                    acc.iter_mut().zip(total.iter_mut()).zip(s.iter().zip(&max))
                 {
                     let mut p = [0.0f32; H];
                     for h in 0..H {
@@ -414,7 +416,11 @@ mod tests {
             let expected: f32 = (0..ns)
                 .map(|j| libm::expf(s[j] - m) / z * v[j * d + c])
                 .sum();
-            assert!((q[c] - expected).abs() < 1e-5, "{c}: {} vs {expected}", q[c]);
+            assert!(
+                (q[c] - expected).abs() < 1e-5,
+                "{c}: {} vs {expected}",
+                q[c]
+            );
         }
     }
 

@@ -22,9 +22,12 @@ pub fn encode(
         *x0 = p[0];
         *y0 = p[1];
     }
-    linear(&w.input, &Input::one(&rows[..2 * n], 2, n), 0..d, |r, i0, v| {
-        store(x, n, r, i0, v)
-    });
+    linear(
+        &w.input,
+        &Input::one(&rows[..2 * n], 2, n),
+        0..d,
+        |r, i0, v| store(x, n, r, i0, v),
+    );
     for block in &w.blocks[..w.count] {
         residual_block(block, x, n, hidden, rows);
     }

@@ -174,7 +174,10 @@ impl fmt::Display for Error {
             Error::DegenerateConfiguration => write!(f, "degenerate point configuration"),
             Error::NoPoseFound => write!(f, "no pose hypothesis found"),
             Error::BlobTruncated { needed, found } => {
-                write!(f, "model blob truncated: {found} bytes, need at least {needed}")
+                write!(
+                    f,
+                    "model blob truncated: {found} bytes, need at least {needed}"
+                )
             }
             Error::BlobMagic { found } => write!(f, "not a model blob: magic {found:02x?}"),
             Error::BlobVersion { expected, found } => write!(
@@ -189,7 +192,10 @@ impl fmt::Display for Error {
                 write!(f, "model blob malformed at byte {offset}")
             }
             Error::TensorCount { expected, found } => {
-                write!(f, "model blob holds {found} tensors, configuration implies {expected}")
+                write!(
+                    f,
+                    "model blob holds {found} tensors, configuration implies {expected}"
+                )
             }
             Error::TensorShape {
                 tensor,

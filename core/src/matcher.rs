@@ -216,8 +216,8 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
     /// Encodes the query keypoints (bearing coordinates `(x/z, y/z)`) and builds their
     /// neighbour graph, for any number of following [`Matcher::match_view`] calls.
     pub fn encode_query(&mut self, model: &Model<'_>, query: &[[f32; 2]]) -> Result<()> {
-        self.check_points(query, Which::Keypoints)?;
         self.query_encoded = false;
+        self.check_points(query, Which::Keypoints)?;
         let n = query.len();
         let d = usize::from(model.config().feature_dim);
         let enc2d = &mut self.features.as_flattened_mut()[..d * n];
@@ -387,5 +387,159 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
             });
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+
+    use std::sync::Mutex;
+
+    use super::*;
+    use crate::weights::tests_support::{blob, TINY};
+
+    const CAP: usize = 64;
+    static WORKSPACE: Mutex<Matcher<CAP, f32>> = Mutex::new(Matcher::new());
+    static WORKSPACE_F16: Mutex<Matcher<CAP, half::f16>> = Mutex::new(Matcher::new());
+
+    fn points(n: usize, seed: u32) -> std::vec::Vec<[f32; 2]> {
+        let mut s = seed;
+        let mut next = move || {
+            s = s.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (s >> 8) as f32 / (1u32 << 24) as f32 - 0.5
+        };
+        (0..n).map(|_| [next(), next()]).collect()
+    }
+
+    fn with_model<R>(f: impl FnOnce(&Model<'_>) -> R) -> R {
+        let mut buf = std::vec![0u8; 64 * 1024];
+        let len = blob(&TINY, 11, &mut buf);
+        let model = Model::from_bytes(&buf[..len]).expect("valid blob");
+        f(&model)
+    }
+
+    /// TFLite Micro style: fails when the workspace grows. The sizes are the sum of the
+    /// buffers documented on [`Matcher`].
+    #[test]
+    fn workspace_size_is_pinned() {
+        fn expected(n: usize, plan: usize) -> usize {
+            let d = MAX_FEATURE_DIM;
+            let features = 3 * d * n * 4 + 3 * d * n * 4 + 2 * ROW_BLOCK * n * 4;
+            let fused = d * FUSE_BLOCK * 4;
+            let graphs = 2 * n * crate::weights::MAX_KNN * 2;
+            let matches = 2 * n * 12 + 8 + 4 + 8;
+            let rest = 4 * n * 4 + 2 * n * 2 + 8 + core::mem::size_of::<ModelConfig>() + 8 + 8;
+            features + fused + n * n * plan + graphs + matches + rest
+        }
+        let exact = |bytes: usize, n: usize, plan: usize| {
+            let e = expected(n, plan);
+            // Field order and padding may add a few bytes, never more.
+            assert!(bytes >= e - 16 && bytes <= e + 16, "{bytes} vs {e}");
+        };
+        exact(Matcher::<256, half::f16>::BYTES, 256, 2);
+        exact(Matcher::<1024, half::f16>::BYTES, 1024, 2);
+        exact(Matcher::<1024, f32>::BYTES, 1024, 4);
+        const { assert!(Matcher::<256, half::f16>::BYTES <= 1 << 20) };
+        const { assert!(Matcher::<1024, half::f16>::BYTES <= 5_500_000) };
+    }
+
+    #[test]
+    fn forward_pass_is_deterministic_and_well_formed() {
+        with_model(|model| {
+            let (q, db) = (points(40, 1), points(50, 2));
+            let mut m = WORKSPACE.lock().expect("lock");
+            let first: std::vec::Vec<Match> = m
+                .match_pair(model, &q, &db)
+                .expect("runs")
+                .as_slice()
+                .to_vec();
+            assert!(!first.is_empty());
+            for w in first.windows(2) {
+                assert!((w[0].i3d, w[0].i2d) < (w[1].i3d, w[1].i2d));
+            }
+            for mt in &first {
+                assert!(usize::from(mt.i2d) < 40 && usize::from(mt.i3d) < 50);
+                assert!(mt.sinkhorn > 0.0 && mt.sinkhorn <= 1.0);
+                assert!((0.0..=1.0).contains(&mt.probability));
+            }
+            // Same inputs, bit-identical outputs; the encoded query is reused per view.
+            let again = m.match_view(model, &db).expect("runs").as_slice().to_vec();
+            assert_eq!(first, again);
+            let other = m.match_view(model, &points(30, 3)).expect("runs").len();
+            assert!(other > 0);
+            let back = m.match_view(model, &db).expect("runs").as_slice().to_vec();
+            assert_eq!(first, back);
+        });
+    }
+
+    #[test]
+    fn f16_cost_storage_gives_nearly_the_same_matches() {
+        with_model(|model| {
+            let (q, db) = (points(40, 1), points(50, 2));
+            let full = WORKSPACE
+                .lock()
+                .expect("lock")
+                .match_pair(model, &q, &db)
+                .expect("runs")
+                .as_slice()
+                .to_vec();
+            let mut half = WORKSPACE_F16.lock().expect("lock");
+            let halved = half.match_pair(model, &q, &db).expect("runs").as_slice();
+            let common = halved
+                .iter()
+                .filter(|h| full.iter().any(|f| (f.i2d, f.i3d) == (h.i2d, h.i3d)))
+                .count();
+            assert!(common * 10 >= full.len() * 9, "{common} of {}", full.len());
+        });
+    }
+
+    #[test]
+    fn bad_inputs_are_typed_errors() {
+        with_model(|model| {
+            let mut m = WORKSPACE.lock().expect("lock");
+            m.set_min_points(0);
+            assert_eq!(m.min_points(), MIN_POINTS_NETWORK);
+            m.min_points = 0;
+            assert_eq!(m.min_points(), MIN_KEYPOINTS);
+            let q = points(20, 1);
+            assert_eq!(
+                m.match_pair(model, &q[..9], &q).map(|_| ()),
+                Err(Error::TooFewPoints {
+                    needed: MIN_KEYPOINTS,
+                    found: 9
+                })
+            );
+            let many = points(CAP + 1, 2);
+            assert_eq!(
+                m.match_pair(model, &q, &many).map(|_| ()),
+                Err(Error::CapacityExceeded {
+                    capacity: CAP,
+                    requested: CAP + 1
+                })
+            );
+            let mut bad = points(20, 3);
+            bad[7][1] = f32::NAN;
+            assert_eq!(
+                m.match_pair(model, &q, &bad).map(|_| ()),
+                Err(Error::NonFinite {
+                    input: Which::Points3d,
+                    index: 7
+                })
+            );
+            bad[7][1] = f32::INFINITY;
+            assert_eq!(
+                m.encode_query(model, &bad),
+                Err(Error::NonFinite {
+                    input: Which::Keypoints,
+                    index: 7
+                })
+            );
+            // The failed encoding invalidated the previous query.
+            assert_eq!(
+                m.match_view(model, &q).map(|_| ()),
+                Err(Error::QueryNotEncoded)
+            );
+        });
     }
 }

@@ -116,13 +116,18 @@ pub fn cost_matrix<S: PlanScalar>(
         n: n3,
         channels,
     };
-    linear(&rows, &Input::one(desc2, channels, n2), 0..n3, |i, j0, dots| {
-        let out = &mut plan[i * n2 + j0..i * n2 + j0 + dots.len()];
-        for ((o, &dot), &a) in out.iter_mut().zip(dots).zip(&norm2[j0..]) {
-            let squared = (a + -2.0 * dot) + norm3[i];
-            *o = S::from_f32(libm::sqrtf(squared.max(1e-30)));
-        }
-    });
+    linear(
+        &rows,
+        &Input::one(desc2, channels, n2),
+        0..n3,
+        |i, j0, dots| {
+            let out = &mut plan[i * n2 + j0..i * n2 + j0 + dots.len()];
+            for ((o, &dot), &a) in out.iter_mut().zip(dots).zip(&norm2[j0..]) {
+                let squared = (a + -2.0 * dot) + norm3[i];
+                *o = S::from_f32(libm::sqrtf(squared.max(1e-30)));
+            }
+        },
+    );
 }
 
 /// The solved transport problem: cost, potentials and the plan on demand.
@@ -171,7 +176,11 @@ impl<S: PlanScalar> Transport<'_, S> {
 /// the `m` real entries and `n / (m + n)` for the dustbin.
 fn log_marginal(m: usize, n: usize, dustbin: bool) -> f32 {
     let total = (m + n) as f32;
-    let mass = if dustbin { n as f32 / total } else { 1.0 / total };
+    let mass = if dustbin {
+        n as f32 / total
+    } else {
+        1.0 / total
+    };
     libm::logf(mass + 1e-8)
 }
 
@@ -255,7 +264,7 @@ pub fn sinkhorn<S: PlanScalar>(
         for (j, vj) in v.iter_mut().enumerate() {
             let target = if j < n2 { log_nu } else { log_nu_bin };
             let lse = libm::logf(col_sum[j]) + col_max[j];
-            *vj = eps * (target - lse) + *vj;
+            *vj += eps * (target - lse);
         }
         let change: f32 = u
             .iter()
@@ -325,42 +334,40 @@ pub fn mutual_assignment<S: PlanScalar>(
     out: &mut [Match],
 ) -> usize {
     let (n3, n2) = (t.n3, t.n2);
+    let (nn12, nn21) = (&mut nn12[..n3], &mut nn21[..n2]);
     let best = &mut best[..n2];
     best.fill(f32::NEG_INFINITY);
-    nn21[..n2].fill(0);
-    for i in 0..n3 {
+    nn21.fill(0);
+    for (i, own) in nn12.iter_mut().enumerate() {
         let mut row_best = f32::NEG_INFINITY;
         let mut row_arg = 0;
-        for j in 0..n2 {
+        for (j, (column_best, column_arg)) in best.iter_mut().zip(nn21.iter_mut()).enumerate() {
             let p = t.plan(i, j);
             if p > row_best {
                 row_best = p;
                 row_arg = j;
             }
-            if p > best[j] {
-                best[j] = p;
-                nn21[j] = i as u16;
+            if p > *column_best {
+                *column_best = p;
+                *column_arg = i as u16;
             }
         }
-        nn12[i] = row_arg as u16;
+        *own = row_arg as u16;
     }
     let mut count = 0;
-    for i in 0..n3 {
-        let j = usize::from(nn12[i]);
-        if usize::from(nn21[j]) == i && count < out.len() {
-            out[count] = pair(t, i, j);
-            count += 1;
+    for (i, &own) in nn12.iter().enumerate() {
+        let j = usize::from(own);
+        if usize::from(nn21[j]) == i {
+            push(out, &mut count, pair(t, i, j));
         }
     }
     if count > 4 {
         return count;
     }
     count = 0;
-    for i in 0..n3 {
-        let own = usize::from(nn12[i]);
-        for j in 0..n2 {
-            let chosen_by_column = usize::from(nn21[j]) == i;
-            if j == own || chosen_by_column {
+    for (i, &own) in nn12.iter().enumerate() {
+        for (j, &column_arg) in nn21.iter().enumerate() {
+            if j == usize::from(own) || usize::from(column_arg) == i {
                 push(out, &mut count, pair(t, i, j));
             }
         }
@@ -395,7 +402,13 @@ mod tests {
         bin_score: 1.0,
     };
 
-    fn transport<'a>(cost: &'a [f32], u: &'a [f32], v: &'a [f32], n3: usize, n2: usize) -> Transport<'a, f32> {
+    fn transport<'a>(
+        cost: &'a [f32],
+        u: &'a [f32],
+        v: &'a [f32],
+        n3: usize,
+        n2: usize,
+    ) -> Transport<'a, f32> {
         Transport {
             cost,
             u,
@@ -461,7 +474,10 @@ mod tests {
         let count = mutual_assignment(&t, &mut nn12, &mut nn21, &mut best, &mut out);
         assert_eq!(count, 3);
         assert_eq!(
-            out[..3].iter().map(|m| (m.i3d, m.i2d)).collect::<heapless::Vec<_, 3>>(),
+            out[..3]
+                .iter()
+                .map(|m| (m.i3d, m.i2d))
+                .collect::<heapless::Vec<_, 3>>(),
             [(0, 0), (1, 1), (2, 2)]
         );
         // Row 1 prefers column 0 too: mutual (0,0), (2,2); union adds (1,0) and column 1's

@@ -270,7 +270,13 @@ pub struct TensorSpec {
     pub bias: bool,
 }
 
-const fn spec(role: &'static str, index: usize, rows: usize, cols: usize, bias: bool) -> TensorSpec {
+const fn spec(
+    role: &'static str,
+    index: usize,
+    rows: usize,
+    cols: usize,
+    bias: bool,
+) -> TensorSpec {
     TensorSpec {
         name: TensorName {
             role,
@@ -533,10 +539,8 @@ impl<'a> Model<'a> {
     /// against the compiled maximums, then every tensor's shape and byte length.
     pub fn from_bytes(blob: &'a [u8]) -> Result<Model<'a>> {
         let payload = check_envelope(blob)?;
-        let (header, mut rest): (BlobHeader, &'a [u8]) =
-            postcard::take_from_bytes(payload).map_err(|_| Error::BlobMalformed {
-                offset: PREAMBLE,
-            })?;
+        let (header, mut rest): (BlobHeader, &'a [u8]) = postcard::take_from_bytes(payload)
+            .map_err(|_| Error::BlobMalformed { offset: PREAMBLE })?;
         header.config.validate()?;
         let expected = tensor_count(&header.config);
         if usize::from(header.tensor_count) != expected {
@@ -713,13 +717,25 @@ fn check_record<'a>(record: &TensorRecord<'a>, spec: &TensorSpec) -> Result<Line
         });
     }
     let lengths = [
-        (TensorPart::Weights, record.weights.len(), rows * cols * precision.bytes_per_weight()),
+        (
+            TensorPart::Weights,
+            record.weights.len(),
+            rows * cols * precision.bytes_per_weight(),
+        ),
         (
             TensorPart::Scales,
             record.scales.len(),
-            if precision == Precision::Int8 { rows * 4 } else { 0 },
+            if precision == Precision::Int8 {
+                rows * 4
+            } else {
+                0
+            },
         ),
-        (TensorPart::Bias, record.bias.len(), if spec.bias { rows * 4 } else { 0 }),
+        (
+            TensorPart::Bias,
+            record.bias.len(),
+            if spec.bias { rows * 4 } else { 0 },
+        ),
     ];
     for (part, found, expected) in lengths {
         if found != expected {
@@ -760,7 +776,11 @@ const CRC_TABLE: [u32; 256] = {
         let mut c = i as u32;
         let mut bit = 0;
         while bit < 8 {
-            c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
             bit += 1;
         }
         table[i] = c;
@@ -903,6 +923,106 @@ mod tests {
         assert_eq!(linear.bias(0), 0.0);
     }
 
+    #[test]
+    fn a_written_blob_loads_and_every_corruption_is_an_error() {
+        let mut buf = [0u8; 32 * 1024];
+        let len = tests_support::blob(&tests_support::TINY, 7, &mut buf);
+        let blob = &buf[..len];
+        let model = Model::from_bytes(blob).expect("valid blob");
+        assert_eq!(*model.config(), tests_support::TINY);
+        assert_eq!(model.encoder.input.rows(), 8);
+        assert_eq!(model.classifier.output.cols(), 8);
+        assert_eq!(
+            Model::from_bytes(&blob[..len - 1]).map(|_| ()),
+            Err(Error::BlobChecksum {
+                stored: u32::from_le_bytes([
+                    blob[len - 5],
+                    blob[len - 4],
+                    blob[len - 3],
+                    blob[len - 2]
+                ]),
+                computed: crc32(&blob[..len - 5]),
+            })
+        );
+        let mut flipped = [0u8; 32 * 1024];
+        flipped[..len].copy_from_slice(blob);
+        flipped[len / 2] ^= 0x10;
+        assert!(matches!(
+            Model::from_bytes(&flipped[..len]),
+            Err(Error::BlobChecksum { .. })
+        ));
+    }
+
+    #[test]
+    fn a_wrong_shape_names_the_tensor() {
+        let mut config = tests_support::TINY;
+        let mut buf = [0u8; 32 * 1024];
+        let len = tests_support::blob(&config, 1, &mut buf);
+        // Re-label the header: the same tensors now claim a 2-head, 16-wide model.
+        config.feature_dim = 16;
+        let mut relabelled = [0u8; 32 * 1024];
+        let pre = preamble();
+        relabelled[..6].copy_from_slice(&pre);
+        let original = postcard::take_from_bytes::<BlobHeader>(&buf[6..len - 4])
+            .expect("header")
+            .1;
+        let header = BlobHeader {
+            config,
+            precision: Precision::F32,
+            tensor_count: tensor_count(&config) as u16,
+        };
+        let written = postcard::to_slice(&header, &mut relabelled[6..])
+            .expect("fits")
+            .len();
+        let body_end = 6 + written + original.len();
+        relabelled[6 + written..body_end].copy_from_slice(original);
+        let crc = crc32(&relabelled[..body_end]);
+        relabelled[body_end..body_end + 4].copy_from_slice(&crc.to_le_bytes());
+        assert_eq!(
+            Model::from_bytes(&relabelled[..body_end + 4]),
+            Err(Error::TensorShape {
+                tensor: TensorName {
+                    role: "encoder.input",
+                    index: 0
+                },
+                expected: [16, 2],
+                found: [8, 2],
+            })
+        );
+    }
+
+    proptest::proptest! {
+        /// Arbitrary bytes, with or without a valid envelope, never panic the decoder.
+        #[test]
+        fn arbitrary_bytes_never_panic(body in proptest::collection::vec(proptest::num::u8::ANY, 0..600), envelope: bool) {
+            let mut buf = [0u8; 700];
+            let len = if envelope {
+                buf[..6].copy_from_slice(&preamble());
+                buf[6..6 + body.len()].copy_from_slice(&body);
+                let crc = crc32(&buf[..6 + body.len()]);
+                buf[6 + body.len()..10 + body.len()].copy_from_slice(&crc.to_le_bytes());
+                10 + body.len()
+            } else {
+                buf[..body.len()].copy_from_slice(&body);
+                body.len()
+            };
+            let _ = Model::from_bytes(&buf[..len]);
+        }
+
+        /// A valid blob with any byte changed and the checksum recomputed is either
+        /// accepted or refused with an error, never a panic.
+        #[test]
+        fn mutated_valid_blobs_never_panic(position in 6usize..4000, value: u8) {
+            let mut buf = [0u8; 32 * 1024];
+            let len = tests_support::blob(&tests_support::TINY, 3, &mut buf);
+            let at = position % (len - 10) + 6;
+            buf[at] = value;
+            let crc = crc32(&buf[..len - 4]);
+            buf[len - 4..len].copy_from_slice(&crc.to_le_bytes());
+            let _ = Model::from_bytes(&buf[..len]);
+        }
+    }
+
     trait ConcatBytes {
         fn concat_bytes(&self) -> [u8; 8];
     }
@@ -920,7 +1040,74 @@ mod tests {
 /// Constructors for unit tests of the kernels.
 #[cfg(test)]
 pub(crate) mod tests_support {
-    use super::{Linear, Precision};
+    use super::{
+        crc32, preamble, tensor_count, tensor_spec, BlobHeader, Linear, ModelConfig, Precision,
+        TensorRecord,
+    };
+
+    /// A small configuration for end-to-end tests: d = 8, one block each, 2 heads, k = 3.
+    pub const TINY: ModelConfig = ModelConfig {
+        feature_dim: 8,
+        encoder_blocks: 1,
+        classifier_dim: 8,
+        classifier_blocks: 1,
+        heads: 2,
+        knn: 3,
+        sinkhorn_iters: 20,
+        sinkhorn_eps: 0.1,
+        sinkhorn_stop: 1e-6,
+        match_threshold: 0.5,
+        bin_score: 1.0,
+    };
+
+    /// Writes a valid blob of `config` with pseudo-random f32 weights in [-0.5, 0.5)
+    /// into `out`; returns its length.
+    pub fn blob(config: &ModelConfig, seed: u32, out: &mut [u8]) -> usize {
+        let mut state = seed.wrapping_mul(747_796_405).wrapping_add(2_891_336_453);
+        let mut next = move || {
+            state = state.wrapping_mul(747_796_405).wrapping_add(2_891_336_453);
+            (state >> 8) as f32 / (1u32 << 24) as f32 - 0.5
+        };
+        let pre = preamble();
+        out[..pre.len()].copy_from_slice(&pre);
+        let mut at = pre.len();
+        let header = BlobHeader {
+            config: *config,
+            precision: Precision::F32,
+            tensor_count: tensor_count(config) as u16,
+        };
+        at += postcard::to_slice(&header, &mut out[at..])
+            .map(|s| s.len())
+            .unwrap_or(0);
+        let mut weights = [0u8; 4 * 4 * 128 * 128];
+        let mut bias = [0u8; 4 * 2 * 128];
+        let mut index = 0;
+        while let Some(spec) = tensor_spec(config, index) {
+            let count = spec.rows * spec.cols;
+            for w in weights[..4 * count].chunks_exact_mut(4) {
+                w.copy_from_slice(&next().to_le_bytes());
+            }
+            let bias_len = if spec.bias { 4 * spec.rows } else { 0 };
+            for b in bias[..bias_len].chunks_exact_mut(4) {
+                b.copy_from_slice(&next().to_le_bytes());
+            }
+            let record = TensorRecord {
+                rows: spec.rows as u32,
+                cols: spec.cols as u32,
+                precision: Precision::F32,
+                weights: &weights[..4 * count],
+                scales: &[],
+                bias: &bias[..bias_len],
+            };
+            at += postcard::to_slice(&record, &mut out[at..])
+                .map(|s| s.len())
+                .unwrap_or(0);
+            index += 1;
+        }
+        let crc = crc32(&out[..at]);
+        out[at..at + 4].copy_from_slice(&crc.to_le_bytes());
+        at + 4
+    }
 
     /// A layer over borrowed bytes, unchecked.
     pub fn linear<'a>(

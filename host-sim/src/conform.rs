@@ -296,7 +296,10 @@ impl<S: PlanScalar> Observer<S> for Comparison {
 
     fn transport(&mut self, t: &Transport<'_, S>) {
         for (name, value) in [
-            ("ot_cost", &(|i, j| t.cost(i, j)) as &dyn Fn(usize, usize) -> f32),
+            (
+                "ot_cost",
+                &(|i, j| t.cost(i, j)) as &dyn Fn(usize, usize) -> f32,
+            ),
             ("scores", &|i, j| t.plan(i, j)),
         ] {
             let result = read_npy::<f32>(&self.fixture.join(format!("{name}.npy"))).and_then(
@@ -324,14 +327,16 @@ impl<S: PlanScalar> Observer<S> for Comparison {
 }
 
 fn max_abs(values: &[f32]) -> f64 {
-    values.iter().fold(0.0f64, |m, &v| m.max(f64::from(v.abs())))
+    values
+        .iter()
+        .fold(0.0f64, |m, &v| m.max(f64::from(v.abs())))
 }
 
 /// A `.npy` array: shape and values in C order.
 fn read_npy<T: npyz::Deserialize>(path: &Path) -> Result<(Vec<u64>, Vec<T>)> {
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    let npy = npyz::NpyFile::new(&bytes[..])
-        .with_context(|| format!("parsing {}", path.display()))?;
+    let npy =
+        npyz::NpyFile::new(&bytes[..]).with_context(|| format!("parsing {}", path.display()))?;
     if npy.order() != npyz::Order::C {
         bail!("{}: Fortran order not supported", path.display());
     }

@@ -58,8 +58,8 @@ impl From<PrecisionArg> for Precision {
 
 /// Runs the command.
 pub fn run(args: &Args) -> Result<()> {
-    let bytes = std::fs::read(&args.input)
-        .with_context(|| format!("reading {}", args.input.display()))?;
+    let bytes =
+        std::fs::read(&args.input).with_context(|| format!("reading {}", args.input.display()))?;
     let keep: Vec<&str> = args
         .keep_f32
         .iter()
@@ -141,8 +141,7 @@ struct Checkpoint {
 
 impl Checkpoint {
     fn parse(bytes: &[u8]) -> Result<Self> {
-        let (_, metadata) =
-            SafeTensors::read_metadata(bytes).context("not a safetensors file")?;
+        let (_, metadata) = SafeTensors::read_metadata(bytes).context("not a safetensors file")?;
         let st = SafeTensors::deserialize(bytes).context("not a safetensors file")?;
         let mut tensors = BTreeMap::new();
         for (name, view) in st.tensors() {
@@ -238,7 +237,13 @@ impl Checkpoint {
         out.push((format!("{p}mlp.3.weight"), vec![d, 2 * d, 1]));
         out.push((format!("{p}mlp.3.bias"), vec![d]));
         let p = format!("{CLS}encoder.");
-        point_resnet(&mut out, &p, 2 * d, c, usize::from(config.classifier_blocks));
+        point_resnet(
+            &mut out,
+            &p,
+            2 * d,
+            c,
+            usize::from(config.classifier_blocks),
+        );
         out.push((format!("{CLS}conv_out.weight"), vec![1, c, 1]));
         out.push((format!("{CLS}conv_out.bias"), vec![1]));
         out
@@ -276,7 +281,12 @@ impl Checkpoint {
         let c = usize::from(config.classifier_dim);
         let mut out = Vec::new();
         let enc = format!("{RAW}kp2d_enc.");
-        out.push(linear(w(&format!("{enc}conv_in.0.weight")), d, 2, w(&format!("{enc}conv_in.0.bias"))));
+        out.push(linear(
+            w(&format!("{enc}conv_in.0.weight")),
+            d,
+            2,
+            w(&format!("{enc}conv_in.0.bias")),
+        ));
         residual_blocks(&mut out, &w, &enc, d, usize::from(config.encoder_blocks));
         for layer in [0, 2] {
             let p = format!("{RAW}attention.att.layers.{layer}.");
@@ -305,7 +315,12 @@ impl Checkpoint {
             w(&format!("{p}mlp.3.bias")),
         ));
         let p = format!("{CLS}encoder.");
-        out.push(linear(w(&format!("{p}conv_in.0.weight")), c, 2 * d, w(&format!("{p}conv_in.0.bias"))));
+        out.push(linear(
+            w(&format!("{p}conv_in.0.weight")),
+            c,
+            2 * d,
+            w(&format!("{p}conv_in.0.bias")),
+        ));
         residual_blocks(&mut out, &w, &p, c, usize::from(config.classifier_blocks));
         out.push(linear(
             w(&format!("{CLS}conv_out.weight")),
@@ -317,12 +332,21 @@ impl Checkpoint {
     }
 }
 
-fn point_resnet(out: &mut Vec<(String, Vec<usize>)>, p: &str, input: usize, width: usize, blocks: usize) {
+fn point_resnet(
+    out: &mut Vec<(String, Vec<usize>)>,
+    p: &str,
+    input: usize,
+    width: usize,
+    blocks: usize,
+) {
     out.push((format!("{p}conv_in.0.weight"), vec![width, input, 1]));
     out.push((format!("{p}conv_in.0.bias"), vec![width]));
     for b in 0..blocks {
         for conv in ["preconv", "conv1", "conv2"] {
-            out.push((format!("{p}conv_{b}.{conv}.0.weight"), vec![width, width, 1]));
+            out.push((
+                format!("{p}conv_{b}.{conv}.0.weight"),
+                vec![width, width, 1],
+            ));
             out.push((format!("{p}conv_{b}.{conv}.0.bias"), vec![width]));
         }
     }
@@ -363,7 +387,12 @@ fn residual_blocks<'a>(
             weights: fused,
             bias: vec![],
         });
-        out.push(linear(w(&format!("{p}conv_{b}.conv2.0.weight")), width, width, &[]));
+        out.push(linear(
+            w(&format!("{p}conv_{b}.conv2.0.weight")),
+            width,
+            width,
+            &[],
+        ));
     }
 }
 
@@ -453,7 +482,7 @@ pub fn write_blob(
     for (index, t) in tensors.iter().enumerate() {
         let spec = tensor_spec(config, index).context("tensor index past the layout")?;
         ensure!(
-            spec.rows == t.rows && spec.cols == t.cols && spec.bias == !t.bias.is_empty(),
+            spec.rows == t.rows && spec.cols == t.cols && spec.bias != t.bias.is_empty(),
             "tensor {}: {}x{} (bias {}), layout expects {}x{} (bias {})",
             spec.name,
             t.rows,
@@ -489,7 +518,10 @@ pub fn write_blob(
 /// Weight bytes and (int8) scale bytes of one tensor.
 fn encode_weights(t: &FloatLinear, precision: Precision) -> (Vec<u8>, Vec<u8>) {
     match precision {
-        Precision::F32 => (t.weights.iter().flat_map(|w| w.to_le_bytes()).collect(), vec![]),
+        Precision::F32 => (
+            t.weights.iter().flat_map(|w| w.to_le_bytes()).collect(),
+            vec![],
+        ),
         Precision::F16 => (
             t.weights
                 .iter()

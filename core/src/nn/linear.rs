@@ -286,8 +286,10 @@ mod tests {
         });
         for r in 0..rows {
             for i in 0..n {
-                let expected: f32 =
-                    (0..cols).map(|k| w[r * cols + k] * x[k * n + i]).sum::<f32>() + bias[r];
+                let expected: f32 = (0..cols)
+                    .map(|k| w[r * cols + k] * x[k * n + i])
+                    .sum::<f32>()
+                    + bias[r];
                 assert_eq!(out[r * n + i], expected, "row {r} point {i}");
             }
         }
@@ -316,7 +318,9 @@ mod tests {
         assert_eq!(whole, split);
         let mut window = [0.0f32; 6];
         let input = Input::one(&x, cols, n).columns(4, 3);
-        linear(&dense, &input, 0..2, |r, i0, v| store(&mut window, 3, r, i0, v));
+        linear(&dense, &input, 0..2, |r, i0, v| {
+            store(&mut window, 3, r, i0, v)
+        });
         for r in 0..2 {
             assert_eq!(window[r * 3..r * 3 + 3], whole[r * n + 4..r * n + 7]);
         }
@@ -327,14 +331,8 @@ mod tests {
         let weights = [2u8, 0xFE]; // 2, -2
         let scales = 0.25f32.to_le_bytes();
         let bias = 1.0f32.to_le_bytes();
-        let linear_layer = crate::weights::tests_support::linear(
-            1,
-            2,
-            Precision::Int8,
-            &weights,
-            &scales,
-            &bias,
-        );
+        let linear_layer =
+            crate::weights::tests_support::linear(1, 2, Precision::Int8, &weights, &scales, &bias);
         let x = [3.0f32, 1.0];
         let mut out = [0.0f32; 1];
         linear(&linear_layer, &Input::one(&x, 2, 1), 0..1, |_, _, v| {
