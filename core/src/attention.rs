@@ -8,7 +8,7 @@
 //! maximum of the neighbour term are kept. Cross attention streams the source points with
 //! an online softmax, so no `N x N x heads` score buffer exists.
 
-use crate::nn::linear::{accumulate, store, store_point_major};
+use crate::nn::linear::{accumulate, chunk_rows, store, store_point_major};
 use crate::nn::{exp, instance_norm, leaky_relu, linear, relu, Input, Moments};
 use crate::weights::{CrossLayerWeights, Linear, SelfLayerWeights, MAX_FEATURE_DIM, MAX_KNN};
 
@@ -58,7 +58,7 @@ pub struct SelfScratch<'s> {
     pub x1: &'s mut [f32],
     /// `x2`, `2d x n`.
     pub x2: &'s mut [f32],
-    /// `ROW_BLOCK x n` neighbour terms.
+    /// At least `ROW_BLOCK x n` values: neighbour terms of a chunk of channels.
     pub rows: &'s mut [f32],
     /// `n` per-point maxima.
     pub maxima: &'s mut [f32],
@@ -132,9 +132,10 @@ fn edge_conv(
 ) {
     let n = input.points();
     let channels = centre.rows();
+    let chunk = chunk_rows(centre.cols(), rows.len(), n);
     let mut r0 = 0;
     while r0 < channels {
-        let r1 = (r0 + crate::nn::ROW_BLOCK).min(channels);
+        let r1 = (r0 + chunk).min(channels);
         linear(centre, input, r0..r1, |r, i0, v| store(out, n, r, i0, v));
         linear(neighbour, input, r0..r1, |r, i0, v| {
             store(rows, n, r - r0, i0, v)
@@ -250,23 +251,33 @@ const SOURCE_BLOCK: usize = 32;
 /// keys and values (point-major `ns x d`).
 fn attend(heads: usize, q: &mut [f32], nx: usize, k: &[f32], v: &[f32], ns: usize, d: usize) {
     match heads {
-        1 => attend_heads::<1>(q, nx, k, v, ns, d),
-        2 => attend_heads::<2>(q, nx, k, v, ns, d),
-        3 => attend_heads::<3>(q, nx, k, v, ns, d),
-        4 => attend_heads::<4>(q, nx, k, v, ns, d),
-        5 => attend_heads::<5>(q, nx, k, v, ns, d),
-        6 => attend_heads::<6>(q, nx, k, v, ns, d),
-        7 => attend_heads::<7>(q, nx, k, v, ns, d),
-        _ => attend_heads::<8>(q, nx, k, v, ns, d),
+        1 => attend_heads::<1, 8>(q, nx, k, v, ns, d),
+        2 => attend_heads::<2, 16>(q, nx, k, v, ns, d),
+        3 => attend_heads::<3, 24>(q, nx, k, v, ns, d),
+        4 => attend_heads::<4, 32>(q, nx, k, v, ns, d),
+        5 => attend_heads::<5, 40>(q, nx, k, v, ns, d),
+        6 => attend_heads::<6, 48>(q, nx, k, v, ns, d),
+        7 => attend_heads::<7, 56>(q, nx, k, v, ns, d),
+        _ => attend_heads::<8, 64>(q, nx, k, v, ns, d),
     }
 }
 
-/// Queries processed together (independent accumulation chains, shared key/value loads).
-const QUERY_BLOCK: usize = 4;
+/// Repeats the per-head values over `L` channels (channel `c` belongs to head `c % H`).
+#[inline(always)]
+fn spread<const H: usize, const L: usize>(per_head: &[f32; H]) -> [f32; L] {
+    let mut out = [0.0f32; L];
+    for (l, o) in out.iter_mut().enumerate() {
+        *o = per_head[l % H];
+    }
+    out
+}
 
 /// Scaled dot-product attention with `H` interleaved heads (head dimension `d / H`),
-/// softmax over the source points computed online block by block (eq. 6-7).
-fn attend_heads<const H: usize>(
+/// softmax over the source points computed online block by block (eq. 6-7). Channels
+/// are processed in runs of `L = 8 H` so that every lane belongs to a fixed head: the dot
+/// products accumulate in `L` lanes summed per head at the end, and the message update
+/// is an element-wise multiply-add with the per-head weights spread over the lanes.
+fn attend_heads<const H: usize, const L: usize>(
     q: &mut [f32],
     nx: usize,
     k: &[f32],
@@ -275,90 +286,100 @@ fn attend_heads<const H: usize>(
     d: usize,
 ) {
     let sqrt_dim = libm::sqrtf((d / H) as f32);
-    let mut queries = [[0.0f32; MAX_FEATURE_DIM]; QUERY_BLOCK];
-    let mut acc = [[0.0f32; MAX_FEATURE_DIM]; QUERY_BLOCK];
-    let mut scores = [[[0.0f32; H]; QUERY_BLOCK]; SOURCE_BLOCK];
-    for block in q[..nx * d].chunks_mut(QUERY_BLOCK * d) {
-        let count = block.len() / d;
-        for (t, query) in queries.iter_mut().enumerate() {
-            if t < count {
-                query[..d].copy_from_slice(&block[t * d..(t + 1) * d]);
-            } else {
-                query[..d].fill(0.0);
-            }
-        }
-        for a in acc.iter_mut() {
-            a[..d].fill(0.0);
-        }
-        let mut max = [[f32::NEG_INFINITY; H]; QUERY_BLOCK];
-        let mut total = [[0.0f32; H]; QUERY_BLOCK];
+    let main = d - d % L;
+    let mut query = [0.0f32; MAX_FEATURE_DIM];
+    let mut acc = [0.0f32; MAX_FEATURE_DIM];
+    let mut scores = [[0.0f32; H]; SOURCE_BLOCK];
+    for qi in q[..nx * d].chunks_exact_mut(d) {
+        query[..d].copy_from_slice(qi);
+        acc[..d].fill(0.0);
+        let mut max = [f32::NEG_INFINITY; H];
+        let mut total = [0.0f32; H];
         let mut j0 = 0;
         while j0 < ns {
             let len = SOURCE_BLOCK.min(ns - j0);
             let mut block_max = max;
             for (t, s) in scores[..len].iter_mut().enumerate() {
                 let kj = &k[(j0 + t) * d..(j0 + t + 1) * d];
-                let mut dot = [[0.0f32; H]; QUERY_BLOCK];
-                for (c0, kc) in kj.chunks_exact(H).enumerate() {
-                    for (dq, query) in dot.iter_mut().zip(&queries) {
-                        let qc = &query[c0 * H..c0 * H + H];
-                        for h in 0..H {
-                            dq[h] += qc[h] * kc[h];
-                        }
+                let mut lanes = [0.0f32; L];
+                for (qc, kc) in query[..main]
+                    .chunks_exact(L)
+                    .zip(kj[..main].chunks_exact(L))
+                {
+                    for l in 0..L {
+                        lanes[l] += qc[l] * kc[l];
                     }
                 }
-                for ((sq, dq), bq) in s.iter_mut().zip(&dot).zip(block_max.iter_mut()) {
-                    for h in 0..H {
-                        sq[h] = dq[h] / sqrt_dim;
-                        bq[h] = bq[h].max(sq[h]);
-                    }
+                let mut dot = [0.0f32; H];
+                for (l, &x) in lanes.iter().enumerate() {
+                    dot[l % H] += x;
+                }
+                for c in main..d {
+                    dot[c % H] += query[c] * kj[c];
+                }
+                for h in 0..H {
+                    s[h] = dot[h] / sqrt_dim;
+                    block_max[h] = block_max[h].max(s[h]);
                 }
             }
-            for ((a, tq), (mq, bq)) in acc
-                .iter_mut()
-                .zip(total.iter_mut())
-                .zip(max.iter().zip(&block_max))
-            {
+            if block_max != max {
                 let mut correction = [0.0f32; H];
                 for h in 0..H {
-                    correction[h] = exp(mq[h] - bq[h]);
-                    tq[h] *= correction[h];
+                    correction[h] = exp(max[h] - block_max[h]);
+                    total[h] *= correction[h];
                 }
-                for ac in a[..d].chunks_exact_mut(H) {
-                    for h in 0..H {
-                        ac[h] *= correction[h];
-                    }
-                }
+                scale_spread::<H, L>(&mut acc[..d], &correction, None);
+                max = block_max;
             }
-            max = block_max;
             for (t, s) in scores[..len].iter().enumerate() {
                 let vj = &v[(j0 + t) * d..(j0 + t + 1) * d];
-                for ((a, tq), (sq, mq)) in
-                    acc.iter_mut().zip(total.iter_mut()).zip(s.iter().zip(&max))
-                {
-                    let mut p = [0.0f32; H];
-                    for h in 0..H {
-                        p[h] = exp(sq[h] - mq[h]);
-                        tq[h] += p[h];
-                    }
-                    for (ac, vc) in a[..d].chunks_exact_mut(H).zip(vj.chunks_exact(H)) {
-                        for h in 0..H {
-                            ac[h] += p[h] * vc[h];
-                        }
-                    }
+                let mut p = [0.0f32; H];
+                for h in 0..H {
+                    p[h] = exp(s[h] - max[h]);
+                    total[h] += p[h];
                 }
+                scale_spread::<H, L>(&mut acc[..d], &p, Some(vj));
             }
             j0 += len;
         }
-        for (t, out) in block.chunks_exact_mut(d).enumerate() {
-            for ((o, a), tq) in out
-                .chunks_exact_mut(H)
-                .zip(acc[t][..d].chunks_exact(H))
-                .zip(core::iter::repeat(&total[t]))
+        for (c, (o, &a)) in qi.iter_mut().zip(&acc[..d]).enumerate() {
+            *o = a / total[c % H];
+        }
+    }
+}
+
+/// `acc[c] *= w[c % H]` (no `values`) or `acc[c] += w[c % H] * values[c]`.
+#[inline(always)]
+fn scale_spread<const H: usize, const L: usize>(
+    acc: &mut [f32],
+    w: &[f32; H],
+    values: Option<&[f32]>,
+) {
+    let d = acc.len();
+    let main = d - d % L;
+    let pattern = spread::<H, L>(w);
+    match values {
+        Some(values) => {
+            for (a, x) in acc[..main]
+                .chunks_exact_mut(L)
+                .zip(values[..main].chunks_exact(L))
             {
-                for h in 0..H {
-                    o[h] = a[h] / tq[h];
+                for l in 0..L {
+                    a[l] += pattern[l] * x[l];
                 }
+            }
+            for c in main..d {
+                acc[c] += w[c % H] * values[c];
+            }
+        }
+        None => {
+            for a in acc[..main].chunks_exact_mut(L) {
+                for l in 0..L {
+                    a[l] *= pattern[l];
+                }
+            }
+            for c in main..d {
+                acc[c] *= w[c % H];
             }
         }
     }

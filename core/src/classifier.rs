@@ -27,7 +27,7 @@ pub struct Descriptors<'s> {
 }
 
 /// Sets `probability` of every match. `pool` holds at least `c x max(n2 + n3, 2, matches)`
-/// values and `rows` `ROW_BLOCK x max(2, matches)`, both scratch. A single match is
+/// values and `rows` at least `ROW_BLOCK x max(2, matches)`, both scratch. A single match is
 /// classified as two copies of itself, as the reference does.
 pub fn classify(
     w: &ClassifierWeights<'_>,

@@ -7,7 +7,7 @@ use crate::nn::{linear, residual_block, Input};
 use crate::weights::EncoderWeights;
 
 /// Encodes `points` into `x` (`d x n`, channel-major). `hidden` (`d x n`) and `rows`
-/// (`ROW_BLOCK x n`, at least `2 x n`) are scratch.
+/// (at least `ROW_BLOCK x n`) are scratch.
 pub fn encode(
     w: &EncoderWeights<'_>,
     points: &[[f32; 2]],

@@ -19,6 +19,10 @@ use crate::classifier::{classify, Descriptors};
 use crate::encoder::encode;
 use crate::error::{Error, Input as Which, Result};
 use crate::nn::{l2_normalize_points, ROW_BLOCK};
+
+/// Rows of `N` values in the row scratch: per-row temporaries of the layers (a chunk of
+/// output rows waiting for their instance norm), Sinkhorn vectors, norms.
+pub const SCRATCH_ROWS: usize = 4 * ROW_BLOCK;
 use crate::sinkhorn::{
     cost_matrix, mutual_assignment, sinkhorn, Match, PlanScalar, SinkhornParams, Transport,
 };
@@ -134,8 +138,8 @@ pub struct Matcher<const N: usize, S: PlanScalar = f32> {
     features: [[f32; N]; 3 * MAX_FEATURE_DIM],
     /// Stage scratch, `3 D x N`.
     pool: [[f32; N]; 3 * MAX_FEATURE_DIM],
-    /// Row scratch, `2 ROW_BLOCK x N`.
-    rows: [[f32; N]; 2 * ROW_BLOCK],
+    /// Row scratch, `SCRATCH_ROWS x N`.
+    rows: [[f32; N]; SCRATCH_ROWS],
     /// Output block of the self-attention fusing conv.
     fused: [f32; MAX_FEATURE_DIM * FUSE_BLOCK],
     /// Sinkhorn cost, `N x N` (rows 3D, columns 2D).
@@ -170,7 +174,7 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
         Matcher {
             features: [[0.0; N]; 3 * MAX_FEATURE_DIM],
             pool: [[0.0; N]; 3 * MAX_FEATURE_DIM],
-            rows: [[0.0; N]; 2 * ROW_BLOCK],
+            rows: [[0.0; N]; SCRATCH_ROWS],
             fused: [0.0; MAX_FEATURE_DIM * FUSE_BLOCK],
             plan: [[S::ZERO; N]; N],
             potentials: [[0.0; N]; 4],
@@ -300,7 +304,7 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
                 ];
                 for (x, n, graph, k) in sets {
                     let (x1, x2) = pool.split_at_mut(d * n);
-                    let (block_rows, maxima) = rows.split_at_mut(ROW_BLOCK * n);
+                    let (maxima, block_rows) = rows.split_at_mut(n);
                     let scratch = SelfScratch {
                         x1,
                         x2,
@@ -425,7 +429,7 @@ mod tests {
     fn workspace_size_is_pinned() {
         fn expected(n: usize, plan: usize) -> usize {
             let d = MAX_FEATURE_DIM;
-            let features = 3 * d * n * 4 + 3 * d * n * 4 + 2 * ROW_BLOCK * n * 4;
+            let features = 3 * d * n * 4 + 3 * d * n * 4 + SCRATCH_ROWS * n * 4;
             let fused = d * FUSE_BLOCK * 4;
             let graphs = 2 * n * crate::weights::MAX_KNN * 2;
             let matches = 2 * n * 12 + 8 + 4 + 8;
@@ -492,6 +496,30 @@ mod tests {
                 .count();
             assert!(common * 10 >= full.len() * 9, "{common} of {}", full.len());
         });
+    }
+
+    /// The whole forward pass runs on a 64 KiB stack (optimised build; unoptimised frames
+    /// are larger, so debug builds get 1 MiB).
+    #[test]
+    fn forward_pass_fits_a_64_kib_stack() {
+        let stack = if cfg!(debug_assertions) {
+            1 << 20
+        } else {
+            64 * 1024
+        };
+        let mut bytes = std::vec![0u8; 64 * 1024];
+        let len = blob(&TINY, 11, &mut bytes);
+        bytes.truncate(len);
+        let (q, db) = (points(CAP, 5), points(CAP, 6));
+        let handle = std::thread::Builder::new()
+            .stack_size(stack)
+            .spawn(move || {
+                let model = Model::from_bytes(&bytes)?;
+                let mut m = WORKSPACE.lock().expect("lock");
+                m.match_pair(&model, &q, &db).map(|set| set.len())
+            })
+            .expect("thread");
+        assert!(handle.join().expect("no stack overflow").expect("runs") > 0);
     }
 
     #[test]

@@ -18,6 +18,13 @@ pub trait PlanScalar: Copy + 'static {
     fn from_f32(x: f32) -> Self;
     /// Reads storage back as f32.
     fn to_f32(self) -> f32;
+    /// A stored row as f32: the row itself for f32, converted into `buf` otherwise.
+    fn row_f32<'a>(row: &'a [Self], buf: &'a mut [f32]) -> &'a [f32] {
+        for (b, c) in buf.iter_mut().zip(row) {
+            *b = c.to_f32();
+        }
+        &buf[..row.len()]
+    }
 }
 
 impl PlanScalar for f32 {
@@ -29,6 +36,9 @@ impl PlanScalar for f32 {
     #[inline(always)]
     fn to_f32(self) -> f32 {
         self
+    }
+    fn row_f32<'a>(row: &'a [Self], _buf: &'a mut [f32]) -> &'a [f32] {
+        row
     }
 }
 
@@ -160,10 +170,10 @@ impl<S: PlanScalar> Transport<'_, S> {
         }
     }
 
-    /// `M_ij = (-C_ij + u_i + v_j) / eps`, the log of the plan entry.
+    /// `M_ij = ((-C_ij + u_i) + v_j) / eps`, the log of the plan entry.
     #[inline(always)]
     pub fn log_plan(&self, i: usize, j: usize) -> f32 {
-        (-self.cost(i, j) + self.u[i] + self.v[j]) / self.params.eps
+        ((-self.cost(i, j) + self.u[i]) + self.v[j]) * (1.0 / self.params.eps)
     }
 
     /// Plan entry `P_ij = exp(M_ij)` (the reference's score matrix).
@@ -184,9 +194,20 @@ fn log_marginal(m: usize, n: usize, dustbin: bool) -> f32 {
     libm::logf(mass + 1e-8)
 }
 
-/// `max + ln(sum exp(x - max))` of one row given by `values`, summed in 8 lanes.
+/// `max + ln(sum exp(x - max))` of one row given by `values`, in 8 lanes.
 fn logsumexp(values: &[f32]) -> f32 {
-    let max = values.iter().fold(f32::NEG_INFINITY, |m, &x| m.max(x));
+    let mut maxima = [f32::NEG_INFINITY; 8];
+    let mut chunks = values.chunks_exact(8);
+    for chunk in &mut chunks {
+        for (m, &x) in maxima.iter_mut().zip(chunk) {
+            *m = if x > *m { x } else { *m };
+        }
+    }
+    let max = chunks
+        .remainder()
+        .iter()
+        .chain(&maxima)
+        .fold(f32::NEG_INFINITY, |m, &x| if x > m { x } else { m });
     let mut lanes = [0.0f32; 8];
     let mut chunks = values.chunks_exact(8);
     for chunk in &mut chunks {
@@ -202,11 +223,12 @@ fn logsumexp(values: &[f32]) -> f32 {
     libm::logf(sum) + max
 }
 
-/// Log-domain Sinkhorn (supp. eq. 10) on `cost` (`n3 x n2`) with the dustbins, exactly the
+/// Log-domain Sinkhorn (supp. eq. 10) on `cost` (`n3 x n2`) with the dustbins, the
 /// reference's fixed-point updates: rows first, then columns with the new `u`, stopping
-/// after the first iteration whose `||u - u_prev||_2` is below `params.stop`.
+/// after the first iteration whose `||u - u_prev||_2` is below `params.stop`, with
+/// `M_ij = ((-C_ij + u_i) + v_j) / eps` (the division done as a product with `1 / eps`).
 /// `u` (`n3 + 1`), `v` (`n2 + 1`) receive the potentials; `scratch` holds
-/// `n3 + 1 + 3 * (n2 + 1)` values. Returns the number of iterations run.
+/// `n3 + 1 + 5 n2 + 3` values. Returns the number of iterations run.
 pub fn sinkhorn<S: PlanScalar>(
     cost: &[S],
     n3: usize,
@@ -220,47 +242,63 @@ pub fn sinkhorn<S: PlanScalar>(
     u.fill(0.0);
     v.fill(0.0);
     let (u_prev, rest) = scratch.split_at_mut(n3 + 1);
+    let (buf, rest) = rest.split_at_mut(n2);
+    let (bins, rest) = rest.split_at_mut(n2);
     let (row, rest) = rest.split_at_mut(n2 + 1);
     let (col_max, rest) = rest.split_at_mut(n2 + 1);
     let col_sum = &mut rest[..n2 + 1];
     let eps = params.eps;
+    let inv_eps = 1.0 / eps;
     let bin = params.bin_score;
+    bins.fill(bin);
     let (log_mu, log_mu_bin) = (log_marginal(n3, n2, false), log_marginal(n3, n2, true));
     let (log_nu, log_nu_bin) = (log_marginal(n2, n3, false), log_marginal(n2, n3, true));
+    let log_plan = |c: f32, ui: f32, vj: f32| ((-c + ui) + vj) * inv_eps;
     let mut iterations = 0;
     while iterations < params.max_iters {
         iterations += 1;
         u_prev.copy_from_slice(u);
-        // Rows: u_i = eps (log mu_i - LSE_j M_ij) + u_i.
-        for i in 0..=n3 {
-            let ui = u[i];
-            if i < n3 {
-                let costs = &cost[i * n2..(i + 1) * n2];
-                for ((r, c), &vj) in row.iter_mut().zip(costs).zip(v.iter()) {
-                    *r = (-c.to_f32() + ui + vj) / eps;
-                }
+        // Rows: u_i = eps (log mu_i - LSE_j M_ij) + u_i; then the column maxima of M
+        // with the new u_i while the row is at hand.
+        col_max.fill(f32::NEG_INFINITY);
+        for (i, ui) in u.iter_mut().enumerate() {
+            let costs = if i < n3 {
+                S::row_f32(&cost[i * n2..(i + 1) * n2], buf)
             } else {
-                for (r, &vj) in row.iter_mut().zip(v.iter()) {
-                    *r = (-bin + ui + vj) / eps;
-                }
+                &*bins
+            };
+            let old = *ui;
+            for ((r, &c), &vj) in row.iter_mut().zip(costs).zip(v.iter()) {
+                *r = log_plan(c, old, vj);
             }
-            row[n2] = (-bin + ui + v[n2]) / eps;
+            row[n2] = log_plan(bin, old, v[n2]);
             let target = if i < n3 { log_mu } else { log_mu_bin };
-            u[i] = eps * (target - logsumexp(row)) + ui;
+            let new = eps * (target - logsumexp(row)) + old;
+            *ui = new;
+            for ((m, &c), &vj) in col_max.iter_mut().zip(costs).zip(v.iter()) {
+                let x = log_plan(c, new, vj);
+                *m = if x > *m { x } else { *m };
+            }
+            col_max[n2] = col_max[n2].max(log_plan(bin, new, v[n2]));
         }
         // Columns with the new u: v_j = eps (log nu_j - LSE_i M_ij) + v_j.
-        col_max.fill(f32::NEG_INFINITY);
-        for_each_log_row(cost, n3, n2, bin, eps, u, v, row, |_, r| {
-            for (m, &x) in col_max.iter_mut().zip(r.iter()) {
-                *m = m.max(x);
-            }
-        });
         col_sum.fill(0.0);
-        for_each_log_row(cost, n3, n2, bin, eps, u, v, row, |_, r| {
-            for ((s, &x), &m) in col_sum.iter_mut().zip(r.iter()).zip(col_max.iter()) {
-                *s += exp(x - m);
+        for (i, &ui) in u.iter().enumerate() {
+            let costs = if i < n3 {
+                S::row_f32(&cost[i * n2..(i + 1) * n2], buf)
+            } else {
+                &*bins
+            };
+            for (((s, &c), &vj), &m) in col_sum
+                .iter_mut()
+                .zip(costs)
+                .zip(v.iter())
+                .zip(col_max.iter())
+            {
+                *s += exp(log_plan(c, ui, vj) - m);
             }
-        });
+            col_sum[n2] += exp(log_plan(bin, ui, v[n2]) - col_max[n2]);
+        }
         for (j, vj) in v.iter_mut().enumerate() {
             let target = if j < n2 { log_nu } else { log_nu_bin };
             let lse = libm::logf(col_sum[j]) + col_max[j];
@@ -276,36 +314,6 @@ pub fn sinkhorn<S: PlanScalar>(
         }
     }
     iterations
-}
-
-/// Calls `f(i, row)` with `row[j] = M_ij` for every row `i <= n3` (dustbin last).
-#[allow(clippy::too_many_arguments)]
-#[inline(always)]
-fn for_each_log_row<S: PlanScalar>(
-    cost: &[S],
-    n3: usize,
-    n2: usize,
-    bin: f32,
-    eps: f32,
-    u: &[f32],
-    v: &[f32],
-    row: &mut [f32],
-    mut f: impl FnMut(usize, &[f32]),
-) {
-    for i in 0..=n3 {
-        let ui = u[i];
-        if i < n3 {
-            for ((r, c), &vj) in row.iter_mut().zip(&cost[i * n2..(i + 1) * n2]).zip(v) {
-                *r = (-c.to_f32() + ui + vj) / eps;
-            }
-        } else {
-            for (r, &vj) in row.iter_mut().zip(v) {
-                *r = (-bin + ui + vj) / eps;
-            }
-        }
-        row[n2] = (-bin + ui + v[n2]) / eps;
-        f(i, row);
-    }
 }
 
 /// One 2D-3D correspondence.
@@ -439,7 +447,7 @@ mod tests {
         let (n3, n2) = (3, 2);
         let cost = [0.1f32, 1.5, 1.4, 0.2, 0.9, 0.8];
         let (mut u, mut v) = ([0.0; 4], [0.0; 3]);
-        let mut scratch = [0.0; 4 + 9];
+        let mut scratch = [0.0; 4 + 13];
         let params = SinkhornParams {
             max_iters: 100,
             stop: 1e-7,

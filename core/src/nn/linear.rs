@@ -130,10 +130,36 @@ impl<'a> Input<'a> {
     }
 }
 
+/// Decoded weights kept at once (8 KiB of stack): a panel of `PANEL_FLOATS / cols` rows.
+pub const PANEL_FLOATS: usize = 2048;
+/// Most rows of a panel.
+const PANEL_MAX_ROWS: usize = 64;
+/// Points per tile: the input tile (`cols x TILE_POINTS`) stays in cache while every row
+/// of the panel passes over it.
+const TILE_POINTS: usize = 64;
+/// A zero row, the weights of the padding rows of a partial row block.
+const ZERO_ROW: [f32; MAX_INPUT] = [0.0; MAX_INPUT];
+
+/// Most output rows a panel holds for a layer of `cols` inputs (a multiple of
+/// [`ROW_BLOCK`]).
+pub fn panel_rows(cols: usize) -> usize {
+    (PANEL_FLOATS / cols.max(1) / ROW_BLOCK * ROW_BLOCK).clamp(ROW_BLOCK, PANEL_MAX_ROWS)
+}
+
+/// Output rows to compute per call when they must wait in a scratch of `scratch` values
+/// for `n` points: a whole panel if it fits, at least [`ROW_BLOCK`].
+pub fn chunk_rows(cols: usize, scratch: usize, n: usize) -> usize {
+    let fits = scratch / n.max(1) / ROW_BLOCK * ROW_BLOCK;
+    panel_rows(cols).min(fits).max(ROW_BLOCK)
+}
+
 /// Computes output rows `rows` of `w` applied to `input` and hands each finished block of
 /// up to [`COL_BLOCK`] points to `emit(row, first_point, values)` (`values.len()` is the
-/// number of valid points). The caller keeps `w.cols() == input.channels() <= MAX_INPUT`
-/// and every part long enough for its rows.
+/// number of valid points), in no particular order. The caller keeps
+/// `w.cols() == input.channels() <= MAX_INPUT` and every part long enough for its rows.
+///
+/// Rows are decoded a panel at a time (each weight once per call); for each tile of
+/// points, every row block of the panel passes over the cached input tile.
 pub fn linear<W: WeightRows>(
     w: &W,
     input: &Input<'_>,
@@ -141,47 +167,61 @@ pub fn linear<W: WeightRows>(
     mut emit: impl FnMut(usize, usize, &[f32]),
 ) {
     let k = w.cols().min(MAX_INPUT);
-    let mut wbuf = [[0.0f32; MAX_INPUT]; ROW_BLOCK];
-    let mut r0 = rows.start;
-    while r0 < rows.end {
-        let count = ROW_BLOCK.min(rows.end - r0);
-        let mut scale = [0.0f32; ROW_BLOCK];
-        let mut bias = [0.0f32; ROW_BLOCK];
-        for (r, buf) in wbuf.iter_mut().enumerate() {
-            if r < count {
-                w.decode(r0 + r, &mut buf[..k]);
-                scale[r] = w.scale(r0 + r);
-                bias[r] = w.bias(r0 + r);
-            } else {
-                buf[..k].fill(0.0);
-            }
+    let panel_len = panel_rows(k);
+    let mut panel = [0.0f32; PANEL_FLOATS];
+    let mut scale = [0.0f32; PANEL_MAX_ROWS];
+    let mut bias = [0.0f32; PANEL_MAX_ROWS];
+    let n = input.n;
+    let mut p0 = rows.start;
+    while p0 < rows.end {
+        let count = panel_len.min(rows.end - p0);
+        for r in 0..count {
+            w.decode(p0 + r, &mut panel[r * k..(r + 1) * k]);
+            scale[r] = w.scale(p0 + r);
+            bias[r] = w.bias(p0 + r);
         }
-        let n = input.n;
-        let mut i0 = 0;
-        let mut values = [0.0f32; COL_BLOCK];
-        while i0 < n {
-            let len = COL_BLOCK.min(n - i0);
-            let acc = if len == COL_BLOCK {
-                block::<true>(&wbuf, input, i0, len)
-            } else {
-                block::<false>(&wbuf, input, i0, len)
-            };
-            for r in 0..count {
-                for t in 0..len {
-                    values[t] = acc[r][t] * scale[r] + bias[r];
+        let mut t0 = 0;
+        while t0 < n {
+            let t1 = (t0 + TILE_POINTS).min(n);
+            let mut r = 0;
+            while r < count {
+                let live = ROW_BLOCK.min(count - r);
+                let weights: [&[f32]; ROW_BLOCK] = core::array::from_fn(|b| {
+                    if b < live {
+                        &panel[(r + b) * k..(r + b + 1) * k]
+                    } else {
+                        &ZERO_ROW[..k]
+                    }
+                });
+                let mut i0 = t0;
+                let mut values = [0.0f32; COL_BLOCK];
+                while i0 < t1 {
+                    let len = COL_BLOCK.min(t1 - i0);
+                    let acc = if len == COL_BLOCK {
+                        block::<true>(&weights, input, i0, len)
+                    } else {
+                        block::<false>(&weights, input, i0, len)
+                    };
+                    for (b, a) in acc.iter().enumerate().take(live) {
+                        for t in 0..len {
+                            values[t] = a[t] * scale[r + b] + bias[r + b];
+                        }
+                        emit(p0 + r + b, i0, &values[..len]);
+                    }
+                    i0 += len;
                 }
-                emit(r0 + r, i0, &values[..len]);
+                r += live;
             }
-            i0 += len;
+            t0 = t1;
         }
-        r0 += count;
+        p0 += count;
     }
 }
 
 /// Accumulates one `ROW_BLOCK x COL_BLOCK` block over all input channels, in order.
 #[inline(always)]
 fn block<const FULL: bool>(
-    w: &[[f32; MAX_INPUT]; ROW_BLOCK],
+    w: &[&[f32]; ROW_BLOCK],
     input: &Input<'_>,
     i0: usize,
     len: usize,
@@ -197,12 +237,11 @@ fn block<const FULL: bool>(
             } else {
                 x[..len].copy_from_slice(&part[at..at + len]);
             }
-            let (w0, w1, w2, w3) = (w[0][k], w[1][k], w[2][k], w[3][k]);
-            for t in 0..COL_BLOCK {
-                acc[0][t] += w0 * x[t];
-                acc[1][t] += w1 * x[t];
-                acc[2][t] += w2 * x[t];
-                acc[3][t] += w3 * x[t];
+            for (a, wr) in acc.iter_mut().zip(w) {
+                let wk = wr[k];
+                for t in 0..COL_BLOCK {
+                    a[t] += wk * x[t];
+                }
             }
             k += 1;
         }

@@ -1,12 +1,13 @@
 //! Residual block of a point ResNet (supp. "Feature Encoder", Fig. "Residual Block"):
 //! `out = ReLU(IN(W2 IN(W1 W0 x))) + x`, no activation between the convolutions.
 
-use super::linear::{linear, store, Input, ROW_BLOCK};
+use super::linear::{chunk_rows, linear, store, Input};
 use super::norm::{instance_norm, relu};
 use crate::weights::ResidualBlockWeights;
 
 /// Applies one block in place to `x` (`d x n`, channel-major). `hidden` holds `d x n`
-/// values and `rows` `ROW_BLOCK x n`; both are scratch.
+/// values and `rows` at least `ROW_BLOCK x n`; both are scratch (more rows, fewer passes
+/// over `hidden`).
 pub fn residual_block(
     w: &ResidualBlockWeights<'_>,
     x: &mut [f32],
@@ -22,9 +23,10 @@ pub fn residual_block(
         instance_norm(row);
     }
     let input = Input::one(hidden, d, n);
+    let chunk = chunk_rows(d, rows.len(), n);
     let mut r0 = 0;
     while r0 < d {
-        let r1 = (r0 + ROW_BLOCK).min(d);
+        let r1 = (r0 + chunk).min(d);
         linear(&w.conv2, &input, r0..r1, |r, i0, v| {
             store(rows, n, r - r0, i0, v)
         });
@@ -60,7 +62,7 @@ mod tests {
         };
         let mut x = [1.0f32, 2.0, 3.0, 5.0, 5.0, 5.0];
         let mut hidden = [0.0; 6];
-        let mut rows = [0.0; ROW_BLOCK * 3];
+        let mut rows = [0.0; crate::nn::ROW_BLOCK * 3];
         residual_block(&w, &mut x, 3, &mut hidden, &mut rows);
         let mut z = [1.0f32, 2.0, 3.0];
         instance_norm(&mut z);
