@@ -498,6 +498,40 @@ mod tests {
         });
     }
 
+    fn coordinate() -> impl proptest::strategy::Strategy<Value = f32> {
+        use proptest::prelude::*;
+        prop_oneof![
+            -2.0f32..2.0,
+            Just(0.0f32),
+            Just(0.25f32),
+            -1e30f32..1e30,
+            proptest::num::f32::ANY,
+        ]
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(64))]
+        /// Any point sets (empty, oversized, duplicated, huge or non-finite coordinates)
+        /// give a result or a typed error, never a panic.
+        #[test]
+        fn arbitrary_points_never_panic(
+            q in proptest::collection::vec((coordinate(), coordinate()), 0..70),
+            db in proptest::collection::vec((coordinate(), coordinate()), 0..70),
+        ) {
+            let q: std::vec::Vec<[f32; 2]> = q.into_iter().map(|(x, y)| [x, y]).collect();
+            let db: std::vec::Vec<[f32; 2]> = db.into_iter().map(|(x, y)| [x, y]).collect();
+            with_model(|model| {
+                let mut m = WORKSPACE.lock().expect("lock");
+                m.set_min_points(MIN_POINTS_NETWORK);
+                if let Ok(set) = m.match_pair(model, &q, &db) {
+                    proptest::prop_assert!(set.len() <= 2 * CAP);
+                }
+                m.min_points = 0;
+                Ok(())
+            })?;
+        }
+    }
+
     /// The whole forward pass runs on a 64 KiB stack (optimised build; unoptimised frames
     /// are larger, so debug builds get 1 MiB).
     #[test]

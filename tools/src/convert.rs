@@ -545,3 +545,193 @@ fn encode_weights(t: &FloatLinear, precision: Precision) -> (Vec<u8>, Vec<u8>) {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use std::collections::HashMap;
+
+    use super::*;
+    use gomatch::Model;
+    use safetensors::tensor::TensorView;
+
+    const SMALL: ModelConfig = ModelConfig {
+        feature_dim: 8,
+        encoder_blocks: 2,
+        classifier_dim: 8,
+        classifier_blocks: 1,
+        ..ModelConfig::REFERENCE
+    };
+
+    type Tensors = Vec<(String, Vec<usize>, Vec<f32>)>;
+
+    /// Deterministic values per name; the kp3d copy equals kp2d.
+    fn values(name: &str, count: usize) -> Vec<f32> {
+        let key = name.replace("kp3d_enc.", "kp2d_enc.");
+        let mut state = key.bytes().fold(2166136261u32, |h, b| {
+            (h ^ u32::from(b)).wrapping_mul(16777619)
+        });
+        (0..count)
+            .map(|_| {
+                state = state.wrapping_mul(1664525).wrapping_add(1013904223);
+                (state >> 8) as f32 / (1u32 << 24) as f32 - 0.5
+            })
+            .collect()
+    }
+
+    fn tensors(config: &ModelConfig) -> Tensors {
+        Checkpoint::expected(config)
+            .into_iter()
+            .map(|(name, shape)| {
+                let count = shape.iter().product();
+                let v = values(&name, count);
+                (name, shape, v)
+            })
+            .collect()
+    }
+
+    fn serialize(tensors: &Tensors, dtype: Dtype, metadata: Option<&str>) -> Vec<u8> {
+        let bytes: Vec<(String, Vec<usize>, Vec<u8>)> = tensors
+            .iter()
+            .map(|(n, s, v)| {
+                let b = match dtype {
+                    Dtype::F64 => v.iter().flat_map(|x| f64::from(*x).to_le_bytes()).collect(),
+                    _ => v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+                };
+                (n.clone(), s.clone(), b)
+            })
+            .collect();
+        let views: Vec<(String, TensorView<'_>)> = bytes
+            .iter()
+            .map(|(n, s, b)| {
+                (
+                    n.clone(),
+                    TensorView::new(dtype, s.clone(), b).expect("view"),
+                )
+            })
+            .collect();
+        let info = metadata.map(|m| HashMap::from([("gomatch_config".to_string(), m.to_string())]));
+        safetensors::serialize(views, info).expect("serialize")
+    }
+
+    fn refused(tensors: &Tensors, needle: &str) {
+        let err = convert(&serialize(tensors, Dtype::F32, None), Precision::F32)
+            .expect_err("must be refused")
+            .to_string();
+        assert!(err.contains(needle), "{err:?} should mention {needle:?}");
+    }
+
+    #[test]
+    fn infers_the_shape_and_reads_the_metadata() {
+        let ts = tensors(&SMALL);
+        let json = r#"{"heads": 2, "knn": 5, "sinkhorn_iters": 30, "sinkhorn_eps": 0.05, "match_threshold": 0.6, "feature_dim": 8}"#;
+        for precision in [Precision::F32, Precision::F16, Precision::Int8] {
+            let (blob, config) =
+                convert(&serialize(&ts, Dtype::F32, Some(json)), precision).expect("converts");
+            let model = Model::from_bytes(&blob).expect("loads");
+            assert_eq!(*model.config(), config);
+            assert_eq!((config.feature_dim, config.encoder_blocks), (8, 2));
+            assert_eq!((config.classifier_dim, config.classifier_blocks), (8, 1));
+            assert_eq!(
+                (config.heads, config.knn, config.sinkhorn_iters),
+                (2, 5, 30)
+            );
+            assert_eq!((config.sinkhorn_eps, config.match_threshold), (0.05, 0.6));
+            let bin = ts.iter().find(|t| t.0.ends_with("bin_score")).expect("bin");
+            assert_eq!(config.bin_score, bin.2[0]);
+        }
+    }
+
+    #[test]
+    fn residual_blocks_store_the_fused_product_and_edge_convs_their_parts() {
+        let ts = tensors(&SMALL);
+        let (blob, _) =
+            convert(&serialize(&ts, Dtype::F32, None), Precision::F32).expect("converts");
+        let model = Model::from_bytes(&blob).expect("loads");
+        let get = |suffix: &str| &ts.iter().find(|t| t.0.ends_with(suffix)).expect(suffix).2;
+        let pre = get("kp2d_enc.conv_1.preconv.0.weight");
+        let conv1 = get("kp2d_enc.conv_1.conv1.0.weight");
+        let mut row = [0.0f32; 8];
+        model.encoder.blocks[1].fused.decode_row(3, 0, &mut row);
+        for (i, &v) in row.iter().enumerate() {
+            let exact: f64 = (0..8)
+                .map(|k| f64::from(conv1[3 * 8 + k]) * f64::from(pre[k * 8 + i]))
+                .sum();
+            assert_eq!(v, exact as f32);
+        }
+        let w = get("layers.2.conv2.weight"); // 16 x 16 on [x_i, x_j - x_i]
+        model.self_layers[1].edge2_centre.decode_row(5, 0, &mut row);
+        for (k, &v) in row.iter().enumerate() {
+            assert_eq!(
+                v,
+                (f64::from(w[5 * 16 + k]) - f64::from(w[5 * 16 + 8 + k])) as f32
+            );
+        }
+        model.self_layers[1]
+            .edge2_neighbour
+            .decode_row(5, 0, &mut row);
+        assert_eq!(row[..], w[5 * 16 + 8..5 * 16 + 16]);
+    }
+
+    #[test]
+    fn refuses_anything_but_the_reference_layout() {
+        let ts = tensors(&SMALL);
+        let name = "matcher.raw_matcher.attention.att.layers.1.mlp.3.bias";
+        refused(
+            &ts.iter().filter(|t| t.0 != name).cloned().collect(),
+            &format!("missing tensor {name}"),
+        );
+        let mut extra = ts.clone();
+        extra.push(("matcher.extra.weight".into(), vec![2], vec![0.0, 1.0]));
+        refused(&extra, "unexpected tensor matcher.extra.weight");
+        let mut shape = ts.clone();
+        let t = shape.iter_mut().find(|t| t.0 == name).expect("tensor");
+        t.1 = vec![4];
+        t.2.truncate(4);
+        refused(&shape, &format!("tensor {name}: shape [4]"));
+        let mut nan = ts.clone();
+        nan.iter_mut().find(|t| t.0 == name).expect("tensor").2[3] = f32::NAN;
+        refused(
+            &nan,
+            &format!("tensor {name}: non-finite value at flat index 3"),
+        );
+        let mut unshared = ts.clone();
+        let twin = "matcher.raw_matcher.kp3d_enc.conv_0.conv2.0.weight";
+        unshared.iter_mut().find(|t| t.0 == twin).expect("tensor").2[0] += 1.0;
+        refused(&unshared, "the encoder must be shared");
+        let err = convert(&serialize(&ts, Dtype::F64, None), Precision::F32)
+            .expect_err("f64 refused")
+            .to_string();
+        assert!(err.contains("dtype F64, expected F32"), "{err}");
+        let err = convert(
+            &serialize(&ts, Dtype::F32, Some(r#"{"encoder_blocks": 12}"#)),
+            Precision::F32,
+        )
+        .expect_err("mismatch refused")
+        .to_string();
+        assert!(err.contains("encoder_blocks = 12 disagrees"), "{err}");
+        let err = convert(
+            &serialize(&ts, Dtype::F32, Some(r#"{"heads": 3}"#)),
+            Precision::F32,
+        )
+        .expect_err("3 heads do not divide 8")
+        .to_string();
+        assert!(err.contains("Heads"), "{err}");
+    }
+
+    #[test]
+    fn int8_rows_use_their_largest_weight_as_127() {
+        let t = FloatLinear {
+            rows: 2,
+            cols: 3,
+            weights: vec![0.5, -1.0, 0.25, 0.0, 0.0, 0.0],
+            bias: vec![],
+        };
+        let (w, s) = encode_weights(&t, Precision::Int8);
+        assert_eq!(
+            w.iter().map(|&b| b as i8).collect::<Vec<_>>(),
+            [64, -127, 32, 0, 0, 0]
+        );
+        assert_eq!(f32::from_le_bytes([s[0], s[1], s[2], s[3]]), 1.0 / 127.0);
+        assert_eq!(f32::from_le_bytes([s[4], s[5], s[6], s[7]]), 1.0);
+    }
+}
