@@ -50,7 +50,25 @@ impl PlanScalar for half::f16 {
     }
     #[inline(always)]
     fn to_f32(self) -> f32 {
-        half::f16::to_f32(self)
+        f16_to_f32(self.to_bits())
+    }
+}
+
+/// Exact f16 -> f32 for every finite f16 (normal, subnormal, zero), branch-free so a row
+/// converts with vector instructions (infinities and NaN, which a cost never is, map to
+/// finite values).
+#[inline(always)]
+fn f16_to_f32(bits: u16) -> f32 {
+    let sign = u32::from(bits & 0x8000) << 16;
+    let magnitude = u32::from(bits & 0x7FFF);
+    // Normal: rebias the exponent from 15 to 127 ((127 - 15) << 23 = 0x3800_0000).
+    let normal = f32::from_bits(((magnitude << 13) + 0x3800_0000) | sign);
+    // Subnormal or zero: mantissa * 2^-24, exact in f32.
+    let small = f32::from_bits((magnitude as f32 * 5.960_464_5e-8).to_bits() | sign);
+    if magnitude >= 0x0400 {
+        normal
+    } else {
+        small
     }
 }
 
@@ -425,6 +443,16 @@ mod tests {
             n2,
             params: PARAMS,
             iterations: 0,
+        }
+    }
+
+    #[test]
+    fn f16_conversion_is_exact_for_every_finite_value() {
+        for bits in 0..=u16::MAX {
+            let h = half::f16::from_bits(bits);
+            if h.is_finite() {
+                assert_eq!(f16_to_f32(bits).to_bits(), h.to_f32().to_bits(), "{bits:#06x}");
+            }
         }
     }
 
