@@ -245,7 +245,7 @@ pub fn cross_layer(
 }
 
 /// Source points per block of the online softmax.
-const SOURCE_BLOCK: usize = 32;
+const SOURCE_BLOCK: usize = 64;
 
 /// Replaces each query (point-major `nx x d`) by its attention message over the source
 /// keys and values (point-major `ns x d`).

@@ -112,12 +112,13 @@ impl<const N: usize> MatchSet<N> {
         self.len == 0
     }
 
-    /// The matches the classifier accepts: probability `>=` the model's threshold.
+    /// The matches the classifier accepts: probability above the model's threshold (strictly,
+    /// as the reference's evaluation).
     pub fn inliers(&self) -> impl Iterator<Item = &Match> {
         let threshold = self.threshold;
         self.as_slice()
             .iter()
-            .filter(move |m| m.probability >= threshold)
+            .filter(move |m| m.probability > threshold)
     }
 
     /// Sinkhorn iterations run for this pair.
@@ -470,6 +471,9 @@ mod tests {
             // Same inputs, bit-identical outputs; the encoded query is reused per view.
             let again = m.match_view(model, &db).expect("runs").as_slice().to_vec();
             assert_eq!(first, again);
+            let set = m.match_view(model, &db).expect("runs");
+            let accepted = set.as_slice().iter().filter(|mt| mt.probability > 0.5);
+            assert!(set.inliers().eq(accepted));
             let other = m.match_view(model, &points(30, 3)).expect("runs").len();
             assert!(other > 0);
             let back = m.match_view(model, &db).expect("runs").as_slice().to_vec();

@@ -451,7 +451,11 @@ mod tests {
         for bits in 0..=u16::MAX {
             let h = half::f16::from_bits(bits);
             if h.is_finite() {
-                assert_eq!(f16_to_f32(bits).to_bits(), h.to_f32().to_bits(), "{bits:#06x}");
+                assert_eq!(
+                    f16_to_f32(bits).to_bits(),
+                    h.to_f32().to_bits(),
+                    "{bits:#06x}"
+                );
             }
         }
     }

@@ -435,11 +435,6 @@ impl<'a> Linear<'a> {
     pub fn bias(&self, row: usize) -> f32 {
         read_f32(self.bias, row).unwrap_or(0.0)
     }
-
-    /// Whether the layer has a bias.
-    pub fn has_bias(&self) -> bool {
-        !self.bias.is_empty()
-    }
 }
 
 fn read_f32(bytes: &[u8], index: usize) -> Option<f32> {

@@ -166,6 +166,7 @@ pub fn linear<W: WeightRows>(
     rows: core::ops::Range<usize>,
     mut emit: impl FnMut(usize, usize, &[f32]),
 ) {
+    debug_assert_eq!(w.cols(), input.channels());
     let k = w.cols().min(MAX_INPUT);
     let panel_len = panel_rows(k);
     let mut panel = [0.0f32; PANEL_FLOATS];
