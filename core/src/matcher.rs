@@ -481,6 +481,32 @@ mod tests {
         });
     }
 
+    /// Widths that are not multiples of the SIMD blocks and 3 heads exercise every tail.
+    #[test]
+    fn odd_configuration_runs() {
+        let config = ModelConfig {
+            feature_dim: 12,
+            encoder_blocks: 2,
+            classifier_dim: 6,
+            classifier_blocks: 1,
+            heads: 3,
+            knn: 4,
+            ..TINY
+        };
+        let mut bytes = std::vec![0u8; 64 * 1024];
+        let len = blob(&config, 5, &mut bytes);
+        let model = Model::from_bytes(&bytes[..len]).expect("valid blob");
+        let mut m = WORKSPACE.lock().expect("lock");
+        let set = m
+            .match_pair(&model, &points(13, 7), &points(21, 8))
+            .expect("runs");
+        assert!(!set.is_empty());
+        assert!(set
+            .as_slice()
+            .iter()
+            .all(|mt| mt.sinkhorn.is_finite() && (0.0..=1.0).contains(&mt.probability)));
+    }
+
     #[test]
     fn f16_cost_storage_gives_nearly_the_same_matches() {
         with_model(|model| {
