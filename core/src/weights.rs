@@ -13,9 +13,11 @@
 //!
 //! Tensors come in the fixed order of [`tensor_spec`], derived from the configuration, and
 //! every shape is checked at load time, so the forward pass never indexes out of bounds.
-//! Each tensor is a per-point linear layer `rows x cols` (output x input, row-major):
-//! f32 and f16 store the weights as they are; int8 stores `round(w / s)` with one symmetric
-//! f32 scale `s = max|w_row| / 127` per output row. Biases are always f32.
+//! Each tensor is a per-point linear layer `rows x cols` (output x input, row-major) with
+//! its own precision (the header's is the blob's nominal one; the converter may keep a few
+//! sensitive tensors in f32): f32 and f16 store the weights as they are; int8 stores
+//! `round(w / s)` with one symmetric f32 scale `s = max|w_row| / 127` per output row.
+//! Biases are always f32.
 //!
 //! The converter folds two exact algebraic identities into the stored tensors (both hold
 //! for the reference network as trained, see `notes/README-nn.md`):
@@ -216,7 +218,7 @@ pub enum ConfigField {
 pub struct BlobHeader {
     /// Architecture configuration.
     pub config: ModelConfig,
-    /// Precision of every weight matrix.
+    /// Nominal precision of the weight matrices (each record states its own).
     pub precision: Precision,
     /// Number of tensor records that follow.
     pub tensor_count: u16,
@@ -602,7 +604,7 @@ impl<'a> Model<'a> {
         &self.config
     }
 
-    /// Weight precision.
+    /// Nominal weight precision (each tensor has its own, see [`Linear::precision`]).
     pub fn precision(&self) -> Precision {
         self.precision
     }
