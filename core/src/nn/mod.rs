@@ -4,7 +4,7 @@
 //! Every feature matrix is channel-major: channel `c` of point `i` of a set of `n` points is
 //! `x[c * n + i]`. A per-point linear layer is then a small matrix product whose inner
 //! loops run over contiguous points, and each weight is decoded from the blob once per
-//! layer call (see [`linear`]).
+//! layer call (see [`mod@linear`]).
 
 pub mod exp;
 pub mod linear;
