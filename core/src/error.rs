@@ -3,6 +3,8 @@
 
 use core::fmt;
 
+use crate::weights::{ConfigField, TensorName, TensorPart};
+
 /// Which input an error refers to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Input {
@@ -121,6 +123,80 @@ pub enum Error {
         /// Name of the offending parameter.
         parameter: &'static str,
     },
+    /// A model blob shorter than its fixed envelope.
+    BlobTruncated {
+        /// Bytes the envelope needs.
+        needed: usize,
+        /// Bytes present.
+        found: usize,
+    },
+    /// A model blob that does not start with the magic bytes.
+    BlobMagic {
+        /// The first four bytes found.
+        found: [u8; 4],
+    },
+    /// A model blob of another format version.
+    BlobVersion {
+        /// Version this build reads.
+        expected: u16,
+        /// Version in the blob.
+        found: u16,
+    },
+    /// A model blob whose checksum does not match its content (corrupted).
+    BlobChecksum {
+        /// CRC-32 stored in the blob.
+        stored: u32,
+        /// CRC-32 of the content.
+        computed: u32,
+    },
+    /// A model blob whose payload cannot be decoded.
+    BlobMalformed {
+        /// Byte offset of the record that failed.
+        offset: usize,
+    },
+    /// A model blob with another number of tensors than its configuration implies.
+    TensorCount {
+        /// Tensors the configuration implies.
+        expected: usize,
+        /// Tensors in the blob.
+        found: usize,
+    },
+    /// A tensor of the wrong shape (rows x cols).
+    TensorShape {
+        /// The tensor.
+        tensor: TensorName,
+        /// Expected rows and columns.
+        expected: [usize; 2],
+        /// Rows and columns in the blob.
+        found: [usize; 2],
+    },
+    /// A tensor byte array of the wrong length.
+    TensorBytes {
+        /// The tensor.
+        tensor: TensorName,
+        /// Which array.
+        part: TensorPart,
+        /// Expected bytes.
+        expected: usize,
+        /// Bytes in the blob.
+        found: usize,
+    },
+    /// A configuration value outside what this build was compiled for.
+    UnsupportedConfig {
+        /// The field.
+        field: ConfigField,
+        /// Its value.
+        value: u32,
+        /// The largest value supported (for `heads`: the feature width it must divide).
+        max: u32,
+    },
+    /// A non-finite or out-of-range real configuration value.
+    InvalidConfigValue {
+        /// The field.
+        field: ConfigField,
+    },
+    /// A view was matched before any query was encoded.
+    QueryNotEncoded,
 }
 
 /// Result with the core's [`Error`].
@@ -178,6 +254,56 @@ impl fmt::Display for Error {
             Error::InvalidConfig { parameter } => {
                 write!(f, "invalid configuration value: {parameter}")
             }
+            Error::BlobTruncated { needed, found } => {
+                write!(
+                    f,
+                    "model blob truncated: {found} bytes, need at least {needed}"
+                )
+            }
+            Error::BlobMagic { found } => write!(f, "not a model blob: magic {found:02x?}"),
+            Error::BlobVersion { expected, found } => write!(
+                f,
+                "model blob format version {found}, this build reads version {expected}"
+            ),
+            Error::BlobChecksum { stored, computed } => write!(
+                f,
+                "model blob corrupted: checksum {computed:08x}, stored {stored:08x}"
+            ),
+            Error::BlobMalformed { offset } => {
+                write!(f, "model blob malformed at byte {offset}")
+            }
+            Error::TensorCount { expected, found } => {
+                write!(
+                    f,
+                    "model blob holds {found} tensors, configuration implies {expected}"
+                )
+            }
+            Error::TensorShape {
+                tensor,
+                expected,
+                found,
+            } => write!(
+                f,
+                "tensor {tensor}: shape {}x{}, expected {}x{}",
+                found[0], found[1], expected[0], expected[1]
+            ),
+            Error::TensorBytes {
+                tensor,
+                part,
+                expected,
+                found,
+            } => write!(
+                f,
+                "tensor {tensor}: {part:?} has {found} bytes, expected {expected}"
+            ),
+            Error::UnsupportedConfig { field, value, max } => write!(
+                f,
+                "model configuration {field:?} = {value} not supported by this build (limit {max})"
+            ),
+            Error::InvalidConfigValue { field } => {
+                write!(f, "model configuration {field:?} is not a valid value")
+            }
+            Error::QueryNotEncoded => write!(f, "no query encoded before matching a view"),
         }
     }
 }

@@ -5,8 +5,11 @@
 //! const generic, and every bad input is a typed [`Error`], never a panic.
 //!
 //! One keypoint travels through the modules in this order:
-//! pixel -> bearing vector ([`camera`]) -> RANSAC-PnP inlier ([`p3p`], [`ransac`],
-//! [`refine`]) -> pose of the query ([`pose`]). The database side is the geometric-only
+//! pixel -> bearing vector ([`camera`]) -> encoder feature ([`encoder`]) -> attention
+//! ([`attention`]) -> Sinkhorn plan and mutual match ([`sinkhorn`]) -> classifier
+//! probability ([`classifier`]) -> RANSAC-PnP inlier ([`p3p`], [`ransac`], [`refine`]) ->
+//! pose of the query ([`pose`]). [`matcher`] runs the network on one query-view pair with
+//! the weights of a [`weights::Model`] blob. The database side is the geometric-only
 //! [`map`]: 3D points, database views and their poses.
 #![no_std]
 #![forbid(unsafe_code)]
@@ -15,18 +18,28 @@
 #[cfg(test)]
 extern crate std;
 
+pub mod attention;
 pub mod camera;
+pub mod classifier;
+pub mod encoder;
 pub mod error;
 pub mod map;
+pub mod matcher;
+pub mod nn;
 pub mod p3p;
 pub mod pose;
 pub mod ransac;
 pub mod refine;
 pub mod rng;
+pub mod sinkhorn;
 #[cfg(test)]
 mod test_scene;
+pub mod weights;
 
 pub use camera::Camera;
 pub use error::{Error, Result};
+pub use matcher::{MatchSet, Matcher, Observer, Stage};
 pub use pose::Pose;
 pub use ransac::{estimate_pose, PnpEstimate, PnpWorkspace, RansacConfig};
+pub use sinkhorn::Match;
+pub use weights::{Model, ModelConfig, Precision};

@@ -18,3 +18,5 @@ pub mod scene;
 pub mod synthetic;
 
 pub mod pnp;
+
+pub mod conform;

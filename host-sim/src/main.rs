@@ -21,6 +21,8 @@ enum Command {
     Map(gomatch_sim::map::Args),
     /// Run RANSAC-PnP on the shared synthetic sets and compare with PoseLib.
     Pnp(gomatch_sim::pnp::Args),
+    /// Run the matcher on a reference fixture and compare every stage with it.
+    Conform(gomatch_sim::conform::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -29,6 +31,7 @@ fn main() -> anyhow::Result<()> {
         Command::Dataset(args) => gomatch_sim::dataset::run(&args)?,
         Command::Map(args) => gomatch_sim::map::run(&args)?,
         Command::Pnp(args) => gomatch_sim::pnp::run(&args)?,
+        Command::Conform(args) => gomatch_sim::conform::run(&args)?,
     }
     Ok(())
 }

@@ -14,11 +14,14 @@ struct Cli {
 enum Command {
     /// Print the version of the core library.
     Version,
+    /// Convert a float32 safetensors checkpoint (reference layout) to a model blob.
+    Convert(gomatch_tools::convert::Args),
 }
 
 fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Version => println!("gomatch {}", env!("CARGO_PKG_VERSION")),
+        Command::Convert(args) => gomatch_tools::convert::run(&args)?,
     }
     Ok(())
 }

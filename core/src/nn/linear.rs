@@ -1,0 +1,383 @@
+//! Per-point linear layer (a 1x1 convolution) on channel-major features:
+//! `y[r][i] = scale[r] * sum_k W[r][k] x[k][i] + bias[r]`.
+//!
+//! Weights are decoded [`ROW_BLOCK`] rows at a time into f32 and reused over all points,
+//! so each stored weight is read once per call (cheap zero-copy reading of f16/int8 from
+//! flash). The inner block keeps `ROW_BLOCK x COL_BLOCK` accumulators in registers; the
+//! sum over `k` runs in order for every output, so results do not depend on SIMD width.
+
+use crate::weights::{Linear, MAX_FEATURE_DIM};
+
+/// Output rows computed together.
+pub const ROW_BLOCK: usize = 4;
+/// Points computed together.
+pub const COL_BLOCK: usize = 8;
+/// Widest input of any layer (the self-attention fusing conv, 4d).
+pub const MAX_INPUT: usize = 4 * MAX_FEATURE_DIM;
+
+/// A source of weight rows decoded to f32.
+pub trait WeightRows {
+    /// Output channels.
+    fn rows(&self) -> usize;
+    /// Input channels.
+    fn cols(&self) -> usize;
+    /// Writes row `row` (`cols()` values) into `out`.
+    fn decode(&self, row: usize, out: &mut [f32]);
+    /// Factor applied to the accumulated sum of row `row`.
+    fn scale(&self, row: usize) -> f32;
+    /// Added after the scale.
+    fn bias(&self, row: usize) -> f32;
+}
+
+impl WeightRows for Linear<'_> {
+    fn rows(&self) -> usize {
+        Linear::rows(self)
+    }
+    fn cols(&self) -> usize {
+        Linear::cols(self)
+    }
+    fn decode(&self, row: usize, out: &mut [f32]) {
+        self.decode_row(row, 0, out);
+    }
+    fn scale(&self, row: usize) -> f32 {
+        Linear::scale(self, row)
+    }
+    fn bias(&self, row: usize) -> f32 {
+        Linear::bias(self, row)
+    }
+}
+
+/// Columns `start..start + cols` of a layer, without its bias: the part of a layer on a
+/// concatenated input that acts on one operand.
+pub struct ColumnSlice<'l, 'a> {
+    /// The layer.
+    pub layer: &'l Linear<'a>,
+    /// First column.
+    pub start: usize,
+    /// Number of columns.
+    pub cols: usize,
+}
+
+impl WeightRows for ColumnSlice<'_, '_> {
+    fn rows(&self) -> usize {
+        self.layer.rows()
+    }
+    fn cols(&self) -> usize {
+        self.cols
+    }
+    fn decode(&self, row: usize, out: &mut [f32]) {
+        self.layer.decode_row(row, self.start, out);
+    }
+    fn scale(&self, row: usize) -> f32 {
+        self.layer.scale(row)
+    }
+    fn bias(&self, _row: usize) -> f32 {
+        0.0
+    }
+}
+
+/// Channel-major input of up to three parts stacked along channels (a concatenation
+/// without a copy). Part `p` holds `rows[p]` channels; channel `r` of part `p` is
+/// `parts[p][r * stride + start..][..n]`.
+#[derive(Clone, Copy)]
+pub struct Input<'a> {
+    parts: [&'a [f32]; 3],
+    rows: [usize; 3],
+    stride: usize,
+    start: usize,
+    n: usize,
+}
+
+impl<'a> Input<'a> {
+    /// One matrix of `rows` channels by `n` points.
+    pub fn one(x: &'a [f32], rows: usize, n: usize) -> Self {
+        Self::parts([x, &[], &[]], [rows, 0, 0], n)
+    }
+
+    /// Concatenation `[a; b]` of two matrices of `n` points.
+    pub fn two(a: (&'a [f32], usize), b: (&'a [f32], usize), n: usize) -> Self {
+        Self::parts([a.0, b.0, &[]], [a.1, b.1, 0], n)
+    }
+
+    /// Concatenation of three matrices of `n` points.
+    pub fn parts(parts: [&'a [f32]; 3], rows: [usize; 3], n: usize) -> Self {
+        Input {
+            parts,
+            rows,
+            stride: n,
+            start: 0,
+            n,
+        }
+    }
+
+    /// The points `start..start + len` only.
+    pub fn columns(self, start: usize, len: usize) -> Self {
+        Input {
+            start: self.start + start,
+            n: len,
+            ..self
+        }
+    }
+
+    /// Total channels.
+    pub fn channels(&self) -> usize {
+        self.rows.iter().sum()
+    }
+
+    /// Points.
+    pub fn points(&self) -> usize {
+        self.n
+    }
+}
+
+/// Decoded weights kept at once (8 KiB of stack): a panel of `PANEL_FLOATS / cols` rows.
+pub const PANEL_FLOATS: usize = 2048;
+/// Most rows of a panel.
+const PANEL_MAX_ROWS: usize = 64;
+/// Points per tile: the input tile (`cols x TILE_POINTS`) stays in cache while every row
+/// of the panel passes over it.
+const TILE_POINTS: usize = 64;
+/// A zero row, the weights of the padding rows of a partial row block.
+const ZERO_ROW: [f32; MAX_INPUT] = [0.0; MAX_INPUT];
+
+/// Most output rows a panel holds for a layer of `cols` inputs (a multiple of
+/// [`ROW_BLOCK`]).
+pub fn panel_rows(cols: usize) -> usize {
+    (PANEL_FLOATS / cols.max(1) / ROW_BLOCK * ROW_BLOCK).clamp(ROW_BLOCK, PANEL_MAX_ROWS)
+}
+
+/// Output rows to compute per call when they must wait in a scratch of `scratch` values
+/// for `n` points: a whole panel if it fits, at least [`ROW_BLOCK`].
+pub fn chunk_rows(cols: usize, scratch: usize, n: usize) -> usize {
+    let fits = scratch / n.max(1) / ROW_BLOCK * ROW_BLOCK;
+    panel_rows(cols).min(fits).max(ROW_BLOCK)
+}
+
+/// Computes output rows `rows` of `w` applied to `input` and hands each finished block of
+/// up to [`COL_BLOCK`] points to `emit(row, first_point, values)` (`values.len()` is the
+/// number of valid points), in no particular order. The caller keeps
+/// `w.cols() == input.channels() <= MAX_INPUT` and every part long enough for its rows.
+///
+/// Rows are decoded a panel at a time (each weight once per call); for each tile of
+/// points, every row block of the panel passes over the cached input tile.
+pub fn linear<W: WeightRows>(
+    w: &W,
+    input: &Input<'_>,
+    rows: core::ops::Range<usize>,
+    mut emit: impl FnMut(usize, usize, &[f32]),
+) {
+    debug_assert_eq!(w.cols(), input.channels());
+    let k = w.cols().min(MAX_INPUT);
+    let panel_len = panel_rows(k);
+    let mut panel = [0.0f32; PANEL_FLOATS];
+    let mut scale = [0.0f32; PANEL_MAX_ROWS];
+    let mut bias = [0.0f32; PANEL_MAX_ROWS];
+    let n = input.n;
+    let mut p0 = rows.start;
+    while p0 < rows.end {
+        let count = panel_len.min(rows.end - p0);
+        for r in 0..count {
+            w.decode(p0 + r, &mut panel[r * k..(r + 1) * k]);
+            scale[r] = w.scale(p0 + r);
+            bias[r] = w.bias(p0 + r);
+        }
+        let mut t0 = 0;
+        while t0 < n {
+            let t1 = (t0 + TILE_POINTS).min(n);
+            let mut r = 0;
+            while r < count {
+                let live = ROW_BLOCK.min(count - r);
+                let weights: [&[f32]; ROW_BLOCK] = core::array::from_fn(|b| {
+                    if b < live {
+                        &panel[(r + b) * k..(r + b + 1) * k]
+                    } else {
+                        &ZERO_ROW[..k]
+                    }
+                });
+                let mut i0 = t0;
+                let mut values = [0.0f32; COL_BLOCK];
+                while i0 < t1 {
+                    let len = COL_BLOCK.min(t1 - i0);
+                    let acc = if len == COL_BLOCK {
+                        block::<true>(&weights, input, i0, len)
+                    } else {
+                        block::<false>(&weights, input, i0, len)
+                    };
+                    for (b, a) in acc.iter().enumerate().take(live) {
+                        for t in 0..len {
+                            values[t] = a[t] * scale[r + b] + bias[r + b];
+                        }
+                        emit(p0 + r + b, i0, &values[..len]);
+                    }
+                    i0 += len;
+                }
+                r += live;
+            }
+            t0 = t1;
+        }
+        p0 += count;
+    }
+}
+
+/// Accumulates one `ROW_BLOCK x COL_BLOCK` block over all input channels, in order.
+#[inline(always)]
+fn block<const FULL: bool>(
+    w: &[&[f32]; ROW_BLOCK],
+    input: &Input<'_>,
+    i0: usize,
+    len: usize,
+) -> [[f32; COL_BLOCK]; ROW_BLOCK] {
+    let mut acc = [[0.0f32; COL_BLOCK]; ROW_BLOCK];
+    let mut k = 0;
+    for (part, &rows) in input.parts.iter().zip(&input.rows) {
+        for r in 0..rows {
+            let at = r * input.stride + input.start + i0;
+            let mut x = [0.0f32; COL_BLOCK];
+            if FULL {
+                x.copy_from_slice(&part[at..at + COL_BLOCK]);
+            } else {
+                x[..len].copy_from_slice(&part[at..at + len]);
+            }
+            for (a, wr) in acc.iter_mut().zip(w) {
+                let wk = wr[k];
+                for t in 0..COL_BLOCK {
+                    a[t] += wk * x[t];
+                }
+            }
+            k += 1;
+        }
+    }
+    acc
+}
+
+/// Writes `values` of `row` at points `i0..` of a channel-major matrix of `n` points.
+#[inline(always)]
+pub fn store(out: &mut [f32], n: usize, row: usize, i0: usize, values: &[f32]) {
+    out[row * n + i0..row * n + i0 + values.len()].copy_from_slice(values);
+}
+
+/// Adds `values` of `row` at points `i0..` of a channel-major matrix of `n` points.
+#[inline(always)]
+pub fn accumulate(out: &mut [f32], n: usize, row: usize, i0: usize, values: &[f32]) {
+    for (o, v) in out[row * n + i0..row * n + i0 + values.len()]
+        .iter_mut()
+        .zip(values)
+    {
+        *o += v;
+    }
+}
+
+/// Writes `values` of channel `row` for points `i0..` into a point-major matrix of
+/// `channels` per point.
+#[inline(always)]
+pub fn store_point_major(out: &mut [f32], channels: usize, row: usize, i0: usize, values: &[f32]) {
+    for (t, &v) in values.iter().enumerate() {
+        out[(i0 + t) * channels + row] = v;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::weights::Precision;
+
+    struct Dense<'a> {
+        w: &'a [f32],
+        rows: usize,
+        cols: usize,
+        bias: &'a [f32],
+    }
+
+    impl WeightRows for Dense<'_> {
+        fn rows(&self) -> usize {
+            self.rows
+        }
+        fn cols(&self) -> usize {
+            self.cols
+        }
+        fn decode(&self, row: usize, out: &mut [f32]) {
+            out.copy_from_slice(&self.w[row * self.cols..(row + 1) * self.cols]);
+        }
+        fn scale(&self, _row: usize) -> f32 {
+            1.0
+        }
+        fn bias(&self, row: usize) -> f32 {
+            self.bias[row]
+        }
+    }
+
+    /// 5 outputs (a partial row block) x 3 inputs on 11 points (a partial column block),
+    /// with small integers so the expected result is exact.
+    #[test]
+    fn matches_the_definition_on_partial_blocks() {
+        let (rows, cols, n) = (5, 3, 11);
+        let w: [f32; 15] = core::array::from_fn(|i| (i as f32) - 7.0);
+        let bias = [0.5, -1.0, 2.0, 0.0, 3.0];
+        let x: [f32; 33] = core::array::from_fn(|i| ((i * 7) % 5) as f32 - 2.0);
+        let dense = Dense {
+            w: &w,
+            rows,
+            cols,
+            bias: &bias,
+        };
+        let mut out = [0.0f32; 55];
+        linear(&dense, &Input::one(&x, cols, n), 0..rows, |r, i0, v| {
+            store(&mut out, n, r, i0, v)
+        });
+        for r in 0..rows {
+            for i in 0..n {
+                let expected: f32 = (0..cols)
+                    .map(|k| w[r * cols + k] * x[k * n + i])
+                    .sum::<f32>()
+                    + bias[r];
+                assert_eq!(out[r * n + i], expected, "row {r} point {i}");
+            }
+        }
+    }
+
+    #[test]
+    fn concatenated_parts_and_column_windows_agree_with_one_matrix() {
+        let (cols, n) = (4, 9);
+        let w: [f32; 8] = [1.0, -2.0, 0.5, 3.0, 2.0, 1.0, -1.0, 0.25];
+        let x: [f32; 36] = core::array::from_fn(|i| (i % 7) as f32);
+        let dense = Dense {
+            w: &w,
+            rows: 2,
+            cols,
+            bias: &[0.0, 1.0],
+        };
+        let mut whole = [0.0f32; 18];
+        linear(&dense, &Input::one(&x, cols, n), 0..2, |r, i0, v| {
+            store(&mut whole, n, r, i0, v)
+        });
+        let (a, b) = x.split_at(n);
+        let mut split = [0.0f32; 18];
+        linear(&dense, &Input::two((a, 1), (b, 3), n), 0..2, |r, i0, v| {
+            store(&mut split, n, r, i0, v)
+        });
+        assert_eq!(whole, split);
+        let mut window = [0.0f32; 6];
+        let input = Input::one(&x, cols, n).columns(4, 3);
+        linear(&dense, &input, 0..2, |r, i0, v| {
+            store(&mut window, 3, r, i0, v)
+        });
+        for r in 0..2 {
+            assert_eq!(window[r * 3..r * 3 + 3], whole[r * n + 4..r * n + 7]);
+        }
+    }
+
+    #[test]
+    fn int8_layer_applies_its_row_scale() {
+        let weights = [2u8, 0xFE]; // 2, -2
+        let scales = 0.25f32.to_le_bytes();
+        let bias = 1.0f32.to_le_bytes();
+        let linear_layer =
+            crate::weights::tests_support::linear(1, 2, Precision::Int8, &weights, &scales, &bias);
+        let x = [3.0f32, 1.0];
+        let mut out = [0.0f32; 1];
+        linear(&linear_layer, &Input::one(&x, 2, 1), 0..1, |_, _, v| {
+            out[0] = v[0]
+        });
+        assert_eq!(out[0], 0.25 * (2.0 * 3.0 - 2.0 * 1.0) + 1.0);
+    }
+}

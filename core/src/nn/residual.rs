@@ -1,0 +1,73 @@
+//! Residual block of a point ResNet (supp. "Feature Encoder", Fig. "Residual Block"):
+//! `out = ReLU(IN(W2 IN(W1 W0 x))) + x`, no activation between the convolutions.
+
+use super::linear::{chunk_rows, linear, store, Input};
+use super::norm::{instance_norm, relu};
+use crate::weights::ResidualBlockWeights;
+
+/// Applies one block in place to `x` (`d x n`, channel-major). `hidden` holds `d x n`
+/// values and `rows` at least `ROW_BLOCK x n`; both are scratch (more rows, fewer passes
+/// over `hidden`).
+pub fn residual_block(
+    w: &ResidualBlockWeights<'_>,
+    x: &mut [f32],
+    n: usize,
+    hidden: &mut [f32],
+    rows: &mut [f32],
+) {
+    let d = w.fused.rows();
+    linear(&w.fused, &Input::one(x, d, n), 0..d, |r, i0, v| {
+        store(hidden, n, r, i0, v)
+    });
+    for row in hidden[..d * n].chunks_exact_mut(n) {
+        instance_norm(row);
+    }
+    let input = Input::one(hidden, d, n);
+    let chunk = chunk_rows(d, rows.len(), n);
+    let mut r0 = 0;
+    while r0 < d {
+        let r1 = (r0 + chunk).min(d);
+        linear(&w.conv2, &input, r0..r1, |r, i0, v| {
+            store(rows, n, r - r0, i0, v)
+        });
+        for r in r0..r1 {
+            let z = &mut rows[(r - r0) * n..(r - r0 + 1) * n];
+            instance_norm(z);
+            for (xv, &zv) in x[r * n..(r + 1) * n].iter_mut().zip(z.iter()) {
+                *xv += relu(zv);
+            }
+        }
+        r0 = r1;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::weights::{tests_support::linear as layer, Precision};
+
+    /// Identity weights on two channels and three points: the block adds
+    /// `ReLU(IN(IN(x)))` to `x`, i.e. the positive part of the standardised channel.
+    #[test]
+    fn identity_block_adds_the_rectified_standardised_input() {
+        let eye: [u8; 16] = {
+            let mut b = [0u8; 16];
+            b[..4].copy_from_slice(&1.0f32.to_le_bytes());
+            b[12..].copy_from_slice(&1.0f32.to_le_bytes());
+            b
+        };
+        let w = ResidualBlockWeights {
+            fused: layer(2, 2, Precision::F32, &eye, &[], &[]),
+            conv2: layer(2, 2, Precision::F32, &eye, &[], &[]),
+        };
+        let mut x = [1.0f32, 2.0, 3.0, 5.0, 5.0, 5.0];
+        let mut hidden = [0.0; 6];
+        let mut rows = [0.0; crate::nn::ROW_BLOCK * 3];
+        residual_block(&w, &mut x, 3, &mut hidden, &mut rows);
+        let mut z = [1.0f32, 2.0, 3.0];
+        instance_norm(&mut z);
+        instance_norm(&mut z);
+        assert_eq!(x[..3], [1.0, 2.0, 3.0 + z[2]]);
+        assert_eq!(x[3..], [5.0, 5.0, 5.0]);
+    }
+}

@@ -1,0 +1,532 @@
+//! Matching (supp. "Sinkhorn Matching", eq. 9-10): distance cost between L2-normalised
+//! descriptors with a dustbin row and column, log-domain Sinkhorn, mutual assignment.
+//!
+//! The cost matrix is the only `N x N` buffer of the matcher; its element type is a
+//! [`PlanScalar`] (f32 or f16). Rows are 3D points, columns 2D keypoints, as in the
+//! reference; the dustbin row and column are the constant bin score and are not stored.
+//! The transport plan `P = exp((-C + u_i + v_j) / eps)` is never stored either: it is
+//! evaluated on demand from the cost and the potentials `u`, `v`.
+
+use crate::nn::linear::WeightRows;
+use crate::nn::{exp, linear, Input};
+
+/// Storage type of the cost matrix.
+pub trait PlanScalar: Copy + 'static {
+    /// Zero, for a `const` initialised workspace.
+    const ZERO: Self;
+    /// Rounds an f32 into storage.
+    fn from_f32(x: f32) -> Self;
+    /// Reads storage back as f32.
+    fn to_f32(self) -> f32;
+    /// A stored row as f32: the row itself for f32, converted into `buf` otherwise.
+    fn row_f32<'a>(row: &'a [Self], buf: &'a mut [f32]) -> &'a [f32] {
+        for (b, c) in buf.iter_mut().zip(row) {
+            *b = c.to_f32();
+        }
+        &buf[..row.len()]
+    }
+}
+
+impl PlanScalar for f32 {
+    const ZERO: Self = 0.0;
+    #[inline(always)]
+    fn from_f32(x: f32) -> Self {
+        x
+    }
+    #[inline(always)]
+    fn to_f32(self) -> f32 {
+        self
+    }
+    fn row_f32<'a>(row: &'a [Self], _buf: &'a mut [f32]) -> &'a [f32] {
+        row
+    }
+}
+
+impl PlanScalar for half::f16 {
+    const ZERO: Self = half::f16::ZERO;
+    #[inline(always)]
+    fn from_f32(x: f32) -> Self {
+        half::f16::from_f32(x)
+    }
+    #[inline(always)]
+    fn to_f32(self) -> f32 {
+        f16_to_f32(self.to_bits())
+    }
+}
+
+/// Exact f16 -> f32 for every finite f16 (normal, subnormal, zero), branch-free so a row
+/// converts with vector instructions (infinities and NaN, which a cost never is, map to
+/// finite values).
+#[inline(always)]
+fn f16_to_f32(bits: u16) -> f32 {
+    let sign = u32::from(bits & 0x8000) << 16;
+    let magnitude = u32::from(bits & 0x7FFF);
+    // Normal: rebias the exponent from 15 to 127 ((127 - 15) << 23 = 0x3800_0000).
+    let normal = f32::from_bits(((magnitude << 13) + 0x3800_0000) | sign);
+    // Subnormal or zero: mantissa * 2^-24, exact in f32.
+    let small = f32::from_bits((magnitude as f32 * 5.960_464_5e-8).to_bits() | sign);
+    if magnitude >= 0x0400 {
+        normal
+    } else {
+        small
+    }
+}
+
+/// Sinkhorn hyper-parameters (from the model configuration).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SinkhornParams {
+    /// Entropic regularisation.
+    pub eps: f32,
+    /// Most iterations.
+    pub max_iters: usize,
+    /// Stop once `||u - u_prev||_2 < stop`.
+    pub stop: f32,
+    /// Dustbin cost.
+    pub bin_score: f32,
+}
+
+/// The rows (points) of a channel-major matrix seen as weight rows: `rows()` points of
+/// `cols()` channels. Used to compute all pairwise dot products with the linear kernel.
+struct PointRows<'a> {
+    x: &'a [f32],
+    n: usize,
+    channels: usize,
+}
+
+impl WeightRows for PointRows<'_> {
+    fn rows(&self) -> usize {
+        self.n
+    }
+    fn cols(&self) -> usize {
+        self.channels
+    }
+    fn decode(&self, row: usize, out: &mut [f32]) {
+        for (c, o) in out.iter_mut().enumerate() {
+            *o = self.x[c * self.n + row];
+        }
+    }
+    fn scale(&self, _row: usize) -> f32 {
+        1.0
+    }
+    fn bias(&self, _row: usize) -> f32 {
+        0.0
+    }
+}
+
+/// Squared norm of every point of a channel-major `channels x n` matrix.
+fn squared_norms(x: &[f32], channels: usize, n: usize, out: &mut [f32]) {
+    out[..n].fill(0.0);
+    for row in x[..channels * n].chunks_exact(n) {
+        for (s, &v) in out[..n].iter_mut().zip(row) {
+            *s += v * v;
+        }
+    }
+}
+
+/// Cost `C[i][j] = sqrt(max(|a_j|^2 - 2 b_i.a_j + |b_i|^2, 1e-30))` between 3D descriptor
+/// `b_i` (rows) and 2D descriptor `a_j` (columns), into `plan` (`n3 x n2`, row-major).
+/// `norms` holds `n2 + n3` values of scratch.
+#[allow(clippy::too_many_arguments)]
+pub fn cost_matrix<S: PlanScalar>(
+    desc3: &[f32],
+    n3: usize,
+    desc2: &[f32],
+    n2: usize,
+    channels: usize,
+    plan: &mut [S],
+    norms: &mut [f32],
+) {
+    let (norm2, norm3) = norms.split_at_mut(n2);
+    squared_norms(desc2, channels, n2, norm2);
+    squared_norms(desc3, channels, n3, norm3);
+    let rows = PointRows {
+        x: desc3,
+        n: n3,
+        channels,
+    };
+    linear(
+        &rows,
+        &Input::one(desc2, channels, n2),
+        0..n3,
+        |i, j0, dots| {
+            let out = &mut plan[i * n2 + j0..i * n2 + j0 + dots.len()];
+            for ((o, &dot), &a) in out.iter_mut().zip(dots).zip(&norm2[j0..]) {
+                let squared = (a + -2.0 * dot) + norm3[i];
+                *o = S::from_f32(libm::sqrtf(squared.max(1e-30)));
+            }
+        },
+    );
+}
+
+/// The solved transport problem: cost, potentials and the plan on demand.
+#[derive(Clone, Copy)]
+pub struct Transport<'a, S: PlanScalar> {
+    /// Cost without dustbins, `n3 x n2` row-major.
+    pub cost: &'a [S],
+    /// Row potentials, `n3 + 1` (last: dustbin row).
+    pub u: &'a [f32],
+    /// Column potentials, `n2 + 1` (last: dustbin column).
+    pub v: &'a [f32],
+    /// 3D points (rows without the dustbin).
+    pub n3: usize,
+    /// 2D keypoints (columns without the dustbin).
+    pub n2: usize,
+    /// Hyper-parameters.
+    pub params: SinkhornParams,
+    /// Iterations run (early stop included).
+    pub iterations: usize,
+}
+
+impl<S: PlanScalar> Transport<'_, S> {
+    /// Cost of row `i <= n3`, column `j <= n2` (the bin score on the dustbins).
+    #[inline(always)]
+    pub fn cost(&self, i: usize, j: usize) -> f32 {
+        if i < self.n3 && j < self.n2 {
+            self.cost[i * self.n2 + j].to_f32()
+        } else {
+            self.params.bin_score
+        }
+    }
+
+    /// `M_ij = ((-C_ij + u_i) + v_j) / eps`, the log of the plan entry.
+    #[inline(always)]
+    pub fn log_plan(&self, i: usize, j: usize) -> f32 {
+        ((-self.cost(i, j) + self.u[i]) + self.v[j]) * (1.0 / self.params.eps)
+    }
+
+    /// Plan entry `P_ij = exp(M_ij)` (the reference's score matrix).
+    pub fn plan(&self, i: usize, j: usize) -> f32 {
+        libm::expf(self.log_plan(i, j))
+    }
+}
+
+/// `log(mu + 1e-8)` of the reference's uniform marginals with dustbin: `1 / (m + n)` for
+/// the `m` real entries and `n / (m + n)` for the dustbin.
+fn log_marginal(m: usize, n: usize, dustbin: bool) -> f32 {
+    let total = (m + n) as f32;
+    let mass = if dustbin {
+        n as f32 / total
+    } else {
+        1.0 / total
+    };
+    libm::logf(mass + 1e-8)
+}
+
+/// `max + ln(sum exp(x - max))` of one row given by `values`, in 8 lanes.
+fn logsumexp(values: &[f32]) -> f32 {
+    let mut maxima = [f32::NEG_INFINITY; 8];
+    let mut chunks = values.chunks_exact(8);
+    for chunk in &mut chunks {
+        for (m, &x) in maxima.iter_mut().zip(chunk) {
+            *m = if x > *m { x } else { *m };
+        }
+    }
+    let max = chunks
+        .remainder()
+        .iter()
+        .chain(&maxima)
+        .fold(f32::NEG_INFINITY, |m, &x| if x > m { x } else { m });
+    let mut lanes = [0.0f32; 8];
+    let mut chunks = values.chunks_exact(8);
+    for chunk in &mut chunks {
+        for (l, &x) in lanes.iter_mut().zip(chunk) {
+            *l += exp(x - max);
+        }
+    }
+    for (l, &x) in lanes.iter_mut().zip(chunks.remainder()) {
+        *l += exp(x - max);
+    }
+    let sum = ((lanes[0] + lanes[1]) + (lanes[2] + lanes[3]))
+        + ((lanes[4] + lanes[5]) + (lanes[6] + lanes[7]));
+    libm::logf(sum) + max
+}
+
+/// Log-domain Sinkhorn (supp. eq. 10) on `cost` (`n3 x n2`) with the dustbins, the
+/// reference's fixed-point updates: rows first, then columns with the new `u`, stopping
+/// after the first iteration whose `||u - u_prev||_2` is below `params.stop`, with
+/// `M_ij = ((-C_ij + u_i) + v_j) / eps` (the division done as a product with `1 / eps`).
+/// `u` (`n3 + 1`), `v` (`n2 + 1`) receive the potentials; `scratch` holds
+/// `n3 + 1 + 5 n2 + 3` values. Returns the number of iterations run.
+pub fn sinkhorn<S: PlanScalar>(
+    cost: &[S],
+    n3: usize,
+    n2: usize,
+    params: &SinkhornParams,
+    u: &mut [f32],
+    v: &mut [f32],
+    scratch: &mut [f32],
+) -> usize {
+    let (u, v) = (&mut u[..n3 + 1], &mut v[..n2 + 1]);
+    u.fill(0.0);
+    v.fill(0.0);
+    let (u_prev, rest) = scratch.split_at_mut(n3 + 1);
+    let (buf, rest) = rest.split_at_mut(n2);
+    let (bins, rest) = rest.split_at_mut(n2);
+    let (row, rest) = rest.split_at_mut(n2 + 1);
+    let (col_max, rest) = rest.split_at_mut(n2 + 1);
+    let col_sum = &mut rest[..n2 + 1];
+    let eps = params.eps;
+    let inv_eps = 1.0 / eps;
+    let bin = params.bin_score;
+    bins.fill(bin);
+    let (log_mu, log_mu_bin) = (log_marginal(n3, n2, false), log_marginal(n3, n2, true));
+    let (log_nu, log_nu_bin) = (log_marginal(n2, n3, false), log_marginal(n2, n3, true));
+    let log_plan = |c: f32, ui: f32, vj: f32| ((-c + ui) + vj) * inv_eps;
+    let mut iterations = 0;
+    while iterations < params.max_iters {
+        iterations += 1;
+        u_prev.copy_from_slice(u);
+        // Rows: u_i = eps (log mu_i - LSE_j M_ij) + u_i; then the column maxima of M
+        // with the new u_i while the row is at hand.
+        col_max.fill(f32::NEG_INFINITY);
+        for (i, ui) in u.iter_mut().enumerate() {
+            let costs = if i < n3 {
+                S::row_f32(&cost[i * n2..(i + 1) * n2], buf)
+            } else {
+                &*bins
+            };
+            let old = *ui;
+            for ((r, &c), &vj) in row.iter_mut().zip(costs).zip(v.iter()) {
+                *r = log_plan(c, old, vj);
+            }
+            row[n2] = log_plan(bin, old, v[n2]);
+            let target = if i < n3 { log_mu } else { log_mu_bin };
+            let new = eps * (target - logsumexp(row)) + old;
+            *ui = new;
+            for ((m, &c), &vj) in col_max.iter_mut().zip(costs).zip(v.iter()) {
+                let x = log_plan(c, new, vj);
+                *m = if x > *m { x } else { *m };
+            }
+            col_max[n2] = col_max[n2].max(log_plan(bin, new, v[n2]));
+        }
+        // Columns with the new u: v_j = eps (log nu_j - LSE_i M_ij) + v_j.
+        col_sum.fill(0.0);
+        for (i, &ui) in u.iter().enumerate() {
+            let costs = if i < n3 {
+                S::row_f32(&cost[i * n2..(i + 1) * n2], buf)
+            } else {
+                &*bins
+            };
+            for (((s, &c), &vj), &m) in col_sum
+                .iter_mut()
+                .zip(costs)
+                .zip(v.iter())
+                .zip(col_max.iter())
+            {
+                *s += exp(log_plan(c, ui, vj) - m);
+            }
+            col_sum[n2] += exp(log_plan(bin, ui, v[n2]) - col_max[n2]);
+        }
+        for (j, vj) in v.iter_mut().enumerate() {
+            let target = if j < n2 { log_nu } else { log_nu_bin };
+            let lse = libm::logf(col_sum[j]) + col_max[j];
+            *vj += eps * (target - lse);
+        }
+        let change: f32 = u
+            .iter()
+            .zip(u_prev.iter())
+            .map(|(&a, &b)| (a - b) * (a - b))
+            .sum();
+        if libm::sqrtf(change) < params.stop {
+            break;
+        }
+    }
+    iterations
+}
+
+/// One 2D-3D correspondence.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Match {
+    /// Index of the query keypoint.
+    pub i2d: u16,
+    /// Index of the database point.
+    pub i3d: u16,
+    /// Sinkhorn plan entry `P[i3d][i2d]`.
+    pub sinkhorn: f32,
+    /// Classifier inlier probability.
+    pub probability: f32,
+}
+
+/// Mutual assignment of the reference on the plan without dustbins: `nn12` = best column
+/// of each row, `nn21` = best row of each column (first maximum on ties); the mutual pairs
+/// in row order, or, if there are 4 or fewer, every pair of either direction (unique,
+/// sorted by 3D then 2D index). Writes the matches into `out` and returns their count.
+/// `best` holds `n2` values of scratch; `nn12` `n3` and `nn21` `n2` indices.
+pub fn mutual_assignment<S: PlanScalar>(
+    t: &Transport<'_, S>,
+    nn12: &mut [u16],
+    nn21: &mut [u16],
+    best: &mut [f32],
+    out: &mut [Match],
+) -> usize {
+    let (n3, n2) = (t.n3, t.n2);
+    let (nn12, nn21) = (&mut nn12[..n3], &mut nn21[..n2]);
+    let best = &mut best[..n2];
+    best.fill(f32::NEG_INFINITY);
+    nn21.fill(0);
+    for (i, own) in nn12.iter_mut().enumerate() {
+        let mut row_best = f32::NEG_INFINITY;
+        let mut row_arg = 0;
+        for (j, (column_best, column_arg)) in best.iter_mut().zip(nn21.iter_mut()).enumerate() {
+            let p = t.plan(i, j);
+            if p > row_best {
+                row_best = p;
+                row_arg = j;
+            }
+            if p > *column_best {
+                *column_best = p;
+                *column_arg = i as u16;
+            }
+        }
+        *own = row_arg as u16;
+    }
+    let mut count = 0;
+    for (i, &own) in nn12.iter().enumerate() {
+        let j = usize::from(own);
+        if usize::from(nn21[j]) == i {
+            push(out, &mut count, pair(t, i, j));
+        }
+    }
+    if count > 4 {
+        return count;
+    }
+    count = 0;
+    for (i, &own) in nn12.iter().enumerate() {
+        for (j, &column_arg) in nn21.iter().enumerate() {
+            if j == usize::from(own) || usize::from(column_arg) == i {
+                push(out, &mut count, pair(t, i, j));
+            }
+        }
+    }
+    count
+}
+
+fn pair<S: PlanScalar>(t: &Transport<'_, S>, i: usize, j: usize) -> Match {
+    Match {
+        i2d: j as u16,
+        i3d: i as u16,
+        sinkhorn: t.plan(i, j),
+        probability: 0.0,
+    }
+}
+
+fn push(out: &mut [Match], count: &mut usize, m: Match) {
+    if let Some(slot) = out.get_mut(*count) {
+        *slot = m;
+        *count += 1;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const PARAMS: SinkhornParams = SinkhornParams {
+        eps: 0.1,
+        max_iters: 20,
+        stop: 1e-6,
+        bin_score: 1.0,
+    };
+
+    fn transport<'a>(
+        cost: &'a [f32],
+        u: &'a [f32],
+        v: &'a [f32],
+        n3: usize,
+        n2: usize,
+    ) -> Transport<'a, f32> {
+        Transport {
+            cost,
+            u,
+            v,
+            n3,
+            n2,
+            params: PARAMS,
+            iterations: 0,
+        }
+    }
+
+    #[test]
+    fn f16_conversion_is_exact_for_every_finite_value() {
+        for bits in 0..=u16::MAX {
+            let h = half::f16::from_bits(bits);
+            if h.is_finite() {
+                assert_eq!(
+                    f16_to_f32(bits).to_bits(),
+                    h.to_f32().to_bits(),
+                    "{bits:#06x}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn cost_is_the_distance_of_unit_descriptors() {
+        // channel-major 2 x 2: desc2 points (1,0), (0,1); desc3 points (1,0), (0.6,0.8)
+        let desc2 = [1.0f32, 0.0, 0.0, 1.0];
+        let desc3 = [1.0f32, 0.6, 0.0, 0.8];
+        let mut plan = [0.0f32; 4];
+        let mut norms = [0.0; 4];
+        cost_matrix(&desc3, 2, &desc2, 2, 2, &mut plan, &mut norms);
+        assert_eq!(plan[0], libm::sqrtf(1e-30));
+        assert!((plan[1] - libm::sqrtf(2.0)).abs() < 1e-6);
+        assert!((plan[2] - libm::sqrtf(0.8)).abs() < 1e-6);
+        assert!((plan[3] - libm::sqrtf(0.4)).abs() < 1e-6);
+    }
+
+    #[test]
+    fn sinkhorn_meets_the_marginals() {
+        let (n3, n2) = (3, 2);
+        let cost = [0.1f32, 1.5, 1.4, 0.2, 0.9, 0.8];
+        let (mut u, mut v) = ([0.0; 4], [0.0; 3]);
+        let mut scratch = [0.0; 4 + 13];
+        let params = SinkhornParams {
+            max_iters: 100,
+            stop: 1e-7,
+            ..PARAMS
+        };
+        let it = sinkhorn(&cost, n3, n2, &params, &mut u, &mut v, &mut scratch);
+        assert!(it > 1);
+        let t = transport(&cost, &u, &v, n3, n2);
+        // Columns are updated last, so their marginals hold to rounding.
+        for j in 0..=n2 {
+            let col: f32 = (0..=n3).map(|i| t.plan(i, j)).sum();
+            let target = if j < n2 { 1.0 / 5.0 } else { 3.0 / 5.0 };
+            assert!((col - target).abs() < 1e-5, "column {j}: {col}");
+        }
+        for i in 0..=n3 {
+            let row: f32 = (0..=n2).map(|j| t.plan(i, j)).sum();
+            let target = if i < n3 { 1.0 / 5.0 } else { 2.0 / 5.0 };
+            assert!((row - target).abs() < 1e-3, "row {i}: {row}");
+        }
+    }
+
+    #[test]
+    fn mutual_pairs_and_fallback() {
+        // log plan = -cost/eps with zero potentials: argmax = smallest cost.
+        let (n3, n2) = (3, 3);
+        let cost = [0.1f32, 0.5, 0.5, 0.5, 0.1, 0.5, 0.5, 0.5, 0.1];
+        let (u, v) = ([0.0; 4], [0.0; 4]);
+        let t = transport(&cost, &u, &v, n3, n2);
+        let (mut nn12, mut nn21, mut best) = ([0; 3], [0; 3], [0.0; 3]);
+        let mut out = [Match::default(); 6];
+        // 3 mutual pairs <= 4: fallback to the union, which equals them here.
+        let count = mutual_assignment(&t, &mut nn12, &mut nn21, &mut best, &mut out);
+        assert_eq!(count, 3);
+        assert_eq!(
+            out[..3]
+                .iter()
+                .map(|m| (m.i3d, m.i2d))
+                .collect::<heapless::Vec<_, 3>>(),
+            [(0, 0), (1, 1), (2, 2)]
+        );
+        // Row 1 prefers column 0 too: mutual (0,0), (2,2); union adds (1,0) and column 1's
+        // best row (0,1) - sorted by row then column.
+        let cost = [0.1f32, 0.2, 0.5, 0.15, 0.4, 0.5, 0.5, 0.5, 0.1];
+        let t = transport(&cost, &u, &v, n3, n2);
+        let count = mutual_assignment(&t, &mut nn12, &mut nn21, &mut best, &mut out);
+        let pairs: heapless::Vec<(u16, u16), 6> =
+            out[..count].iter().map(|m| (m.i3d, m.i2d)).collect();
+        assert_eq!(pairs, [(0, 0), (0, 1), (1, 0), (2, 2)]);
+    }
+}

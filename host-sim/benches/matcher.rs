@@ -1,0 +1,165 @@
+//! Criterion benchmark of the full matcher (encoder, attention, Sinkhorn, mutual
+//! assignment, classifier) on one query-view pair of N keypoints and N points, one thread,
+//! for each weight precision, plus a per-stage time breakdown printed before the runs.
+//!
+//! Weights: the reference fixture checkpoint (`shared/reference/fixtures`), converted like
+//! `gomatch-tools convert`. Inputs: deterministic pseudo-random bearings; the database is
+//! the query with noise plus outliers. Run: `cargo bench -p gomatch-sim --bench matcher`.
+
+use std::path::PathBuf;
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
+use gomatch::sinkhorn::{PlanScalar, Transport};
+use gomatch::{Matcher, Model, Observer, Precision, Stage};
+use half::f16;
+
+const CAPACITY: usize = 1024;
+static MATCHER_F32: Mutex<Matcher<CAPACITY, f32>> = Mutex::new(Matcher::new());
+static MATCHER_F16: Mutex<Matcher<CAPACITY, f16>> = Mutex::new(Matcher::new());
+
+fn checkpoint() -> Option<Vec<u8>> {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/reference/fixtures/weights.safetensors");
+    match std::fs::read(&path) {
+        Ok(bytes) => Some(bytes),
+        Err(_) => {
+            println!("SKIP matcher bench: {} not found", path.display());
+            None
+        }
+    }
+}
+
+/// `n` bearings in [-0.6, 0.6]^2 from a linear congruential generator.
+fn bearings(n: usize, seed: u64) -> Vec<[f32; 2]> {
+    let mut state = seed
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
+    let mut next = move || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((state >> 40) as f32 / (1u64 << 24) as f32) * 1.2 - 0.6
+    };
+    (0..n).map(|_| [next(), next()]).collect()
+}
+
+/// Query and database: 70 % of the database are the query points with noise.
+fn pair(n: usize) -> (Vec<[f32; 2]>, Vec<[f32; 2]>) {
+    let query = bearings(n, 1);
+    let noise = bearings(n, 2);
+    let outliers = bearings(n, 3);
+    let db = (0..n)
+        .map(|i| {
+            if i * 10 < n * 7 {
+                let q = query[(i * 7919) % n];
+                [q[0] + noise[i][0] * 1e-3, q[1] + noise[i][1] * 1e-3]
+            } else {
+                outliers[i]
+            }
+        })
+        .collect();
+    (query, db)
+}
+
+/// Times between consecutive stage reports.
+struct StageClock {
+    last: Instant,
+    spent: Vec<(&'static str, Duration)>,
+}
+
+impl StageClock {
+    fn lap(&mut self, name: &'static str) {
+        let now = Instant::now();
+        self.spent.push((name, now - self.last));
+        self.last = now;
+    }
+}
+
+impl<S: PlanScalar> Observer<S> for StageClock {
+    fn features(&mut self, stage: Stage, _x: &[f32], _c: usize, _n: usize) {
+        match stage {
+            Stage::Enc3d => self.lap("encoder (3D set)"),
+            Stage::Att0Self3d => self.lap("self attention 0"),
+            Stage::Att1Cross3d => self.lap("cross attention"),
+            Stage::Att2Self3d => self.lap("self attention 2"),
+            Stage::Desc3dL2 => self.lap("L2 normalise"),
+            _ => {}
+        }
+    }
+    fn transport(&mut self, _t: &Transport<'_, S>) {
+        self.lap("cost + Sinkhorn");
+    }
+}
+
+fn breakdown<S: PlanScalar>(
+    matcher: &Mutex<Matcher<CAPACITY, S>>,
+    model: &Model<'_>,
+    label: &str,
+    n: usize,
+) {
+    let (query, db) = pair(n);
+    let mut m = matcher.lock().unwrap();
+    let start = Instant::now();
+    m.encode_query(model, &query).unwrap();
+    let mut clock = StageClock {
+        last: Instant::now(),
+        spent: vec![("encoder (query)", start.elapsed())],
+    };
+    let set = m.match_view_observed(model, &db, &mut clock).unwrap();
+    let (matches, iterations) = (set.len(), set.sinkhorn_iterations());
+    clock.lap("mutual assignment + classifier");
+    let total: Duration = clock.spent.iter().map(|(_, d)| *d).sum();
+    println!(
+        "stage breakdown {label} N={n}: total {:.1} ms, {matches} matches, {iterations} Sinkhorn iterations",
+        total.as_secs_f64() * 1e3
+    );
+    for (name, d) in &clock.spent {
+        println!("  {name:32} {:8.2} ms", d.as_secs_f64() * 1e3);
+    }
+}
+
+fn bench(c: &mut Criterion) {
+    let Some(checkpoint) = checkpoint() else {
+        return;
+    };
+    println!(
+        "workspace bytes: Matcher<256, f32> {}, Matcher<256, f16> {}, Matcher<1024, f32> {}, Matcher<1024, f16> {}",
+        Matcher::<256, f32>::BYTES,
+        Matcher::<256, f16>::BYTES,
+        Matcher::<1024, f32>::BYTES,
+        Matcher::<1024, f16>::BYTES
+    );
+    let mut group = c.benchmark_group("matcher");
+    group.sample_size(10).warm_up_time(Duration::from_secs(1));
+    for precision in [Precision::F32, Precision::F16, Precision::Int8] {
+        let (blob, _) = gomatch_tools::convert::convert(&checkpoint, precision).unwrap();
+        let model = Model::from_bytes(&blob).unwrap();
+        let name = format!("{precision:?}").to_lowercase();
+        for n in [256, 1024] {
+            breakdown(&MATCHER_F32, &model, &format!("{name}/plan f32"), n);
+            let (query, db) = pair(n);
+            group.bench_with_input(
+                BenchmarkId::new(format!("{name}/plan_f32"), n),
+                &n,
+                |b, _| {
+                    let mut m = MATCHER_F32.lock().unwrap();
+                    b.iter(|| m.match_pair(&model, &query, &db).unwrap().len());
+                },
+            );
+            group.bench_with_input(
+                BenchmarkId::new(format!("{name}/plan_f16"), n),
+                &n,
+                |b, _| {
+                    let mut m = MATCHER_F16.lock().unwrap();
+                    b.iter(|| m.match_pair(&model, &query, &db).unwrap().len());
+                },
+            );
+        }
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

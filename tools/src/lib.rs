@@ -1,0 +1,4 @@
+//! Checkpoint conversion and reports around the `gomatch` core. Each subcommand of the
+//! `gomatch-tools` binary is a module with an `Args` struct and a `run` function.
+
+pub mod convert;
