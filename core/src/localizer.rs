@@ -31,29 +31,55 @@ use crate::weights::Model;
 /// Most database views one query is matched against (the paper's largest `k`).
 pub const MAX_VIEWS: usize = 10;
 
-/// The database points a view contributes to matching, defined once for the device and
-/// the host's evaluation protocol: the view's observed points in their stored order, those
-/// in front of the view's camera with a bearing vector (paper eq. 1) representable in
-/// `f32`, the first `capacity` of them (the paper keeps "up to its first 1024"). Yields
-/// each point's tag and its bearing vector `(x/z, y/z)` in the view.
+/// Bearing vector `(x/z, y/z)` of a world point in a view (paper eq. 1), when the point
+/// can be matched from it: in front of the camera, with coordinates representable in
+/// `f32` (the matcher's input type).
+pub fn view_bearing(view_pose: &Pose, point: [f64; 3]) -> Option<[f64; 2]> {
+    let [x, y, z] = point;
+    let bearing = view_pose
+        .bearing(&nalgebra::Vector3::new(x, y, z), 0)
+        .ok()?;
+    bearing
+        .iter()
+        .all(|&v| (v as f32).is_finite())
+        .then_some(bearing)
+}
+
+/// The database points a view contributes to matching, the one rule shared by the device
+/// and the host's evaluation protocol: of the view's observed points in stored order,
+/// those with a [`view_bearing`]; when `M` of them exceed `capacity` (`N`), the ones at
+/// the evenly spaced positions `floor(i M / N)`, `i = 0..N`. The paper keeps "up to its
+/// first 1024", whose database keypoints came from a detector capped at its 1024
+/// strongest; a map's stored order carries no such ranking (a COLMAP image lists its
+/// keypoints in extraction order), so an even spread over the list keeps the sample
+/// unbiased. Yields each point's tag and its bearing. `points` is traversed twice (count,
+/// then selection).
 pub fn view_point_bearings<T, I>(
     view_pose: Pose,
     points: I,
     capacity: usize,
 ) -> impl Iterator<Item = (T, [f64; 2])>
 where
-    I: IntoIterator<Item = (T, [f64; 3])>,
+    I: Iterator<Item = (T, [f64; 3])> + Clone,
 {
+    let available = points
+        .clone()
+        .filter(|(_, p)| view_bearing(&view_pose, *p).is_some())
+        .count();
+    let (available, capacity) = (available as u64, capacity as u64);
+    let (mut position, mut kept) = (0u64, 0u64);
     points
-        .into_iter()
-        .filter_map(move |(tag, [x, y, z])| {
-            let bearing = view_pose
-                .bearing(&nalgebra::Vector3::new(x, y, z), 0)
-                .ok()?;
-            let representable = bearing.iter().all(|&v| (v as f32).is_finite());
-            representable.then_some((tag, bearing))
+        .filter_map(move |(tag, p)| {
+            let bearing = view_bearing(&view_pose, p)?;
+            let here = position;
+            position += 1;
+            let wanted = available <= capacity || here == kept * available / capacity.max(1);
+            if wanted {
+                kept += 1;
+            }
+            wanted.then_some((tag, bearing))
         })
-        .take(capacity)
+        .take(capacity as usize)
 }
 
 /// A query: keypoints in pixels (at most the localizer's capacity; the caller caps) and
@@ -441,7 +467,9 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         let pose = map.view(view)?.pose;
         let observed = map.view_points(view)?;
         let mut len = 0;
-        let points = observed.iter().filter_map(|index| {
+        // The map was validated when read, so every index and point resolves.
+        let points = (0..observed.len()).filter_map(|j| {
+            let index = observed.get(j)?;
             let p = map.point(index as usize).ok()?;
             Some((index, p.map(f64::from)))
         });
@@ -729,7 +757,10 @@ mod tests {
         let merge = CAP * (2 * 4 + 2 * 8 + 2 * 4 + 4 + 12 + 12 + 2 * 8 + 3 * 8) + 8;
         let expected = Matcher::<CAP, f32>::BYTES + PnpWorkspace::<CAP>::BYTES + merge;
         let bytes = Localizer::<CAP, f32>::BYTES;
-        assert!(bytes >= expected && bytes <= expected + 16, "{bytes} vs {expected}");
+        assert!(
+            bytes >= expected && bytes <= expected + 16,
+            "{bytes} vs {expected}"
+        );
     }
 
     #[test]
@@ -935,11 +966,14 @@ mod tests {
         // Keypoint 7 matched to the wrong point is the only outlier.
         assert_eq!(localization.counts.inliers, CAP - 3);
         assert_eq!(l.inliers().count(), CAP - 3);
-        assert!(l.correspondences().iter().any(|c| c.keypoint == 7 && !c.inlier));
+        assert!(l
+            .correspondences()
+            .iter()
+            .any(|c| c.keypoint == 7 && !c.inlier));
     }
 
     #[test]
-    fn view_points_are_the_first_in_front() {
+    fn view_points_are_those_in_front_evenly_spread_over_the_list() {
         let behind = [0.0, 0.0, -1.0];
         let ahead = |i: f64| [i, 0.0, 4.0];
         let points = [
@@ -948,12 +982,27 @@ mod tests {
             (2, ahead(1.0)),
             (3, ahead(2.0)),
             (4, ahead(3.0)),
+            (5, [1e39, 0.0, 1.0]),
+            (6, ahead(4.0)),
+            (7, ahead(5.0)),
         ];
-        let chosen: Vec<(i32, [f64; 2])> =
-            view_point_bearings(Pose::identity(), points, 3).collect();
-        assert_eq!(
-            chosen,
-            std::vec![(0, [0.0, 0.0]), (2, [0.25, 0.0]), (3, [0.5, 0.0])]
-        );
+        let chosen = |capacity| -> Vec<i32> {
+            view_point_bearings(Pose::identity(), points.into_iter(), capacity)
+                .map(|(tag, _)| tag)
+                .collect()
+        };
+        // Six points are in front with an f32 bearing; all fit in 6 or more.
+        assert_eq!(chosen(6), std::vec![0, 2, 3, 4, 6, 7]);
+        assert_eq!(chosen(100), chosen(6));
+        // Three of six: positions 0, 2, 4 of the usable list.
+        assert_eq!(chosen(3), std::vec![0, 3, 6]);
+        // Four of six: positions 0, 1, 3, 4.
+        assert_eq!(chosen(4), std::vec![0, 2, 4, 6]);
+        assert_eq!(chosen(1), std::vec![0]);
+        assert!(chosen(0).is_empty());
+        let bearings: Vec<[f64; 2]> = view_point_bearings(Pose::identity(), points.into_iter(), 2)
+            .map(|(_, b)| b)
+            .collect();
+        assert_eq!(bearings, std::vec![[0.0, 0.0], [0.75, 0.0]]);
     }
 }
