@@ -118,6 +118,9 @@ pub struct LocalizerConfig {
     /// Fewest merged matches worth running the pose solver on (at least
     /// [`MIN_CORRESPONDENCES`]).
     pub min_matches: usize,
+    /// Fewest inliers of an accepted pose (at least [`MIN_CORRESPONDENCES`]: a P3P sample
+    /// always has 3, so a pose must be confirmed by at least one more correspondence).
+    pub min_inliers: usize,
 }
 
 impl Default for LocalizerConfig {
@@ -127,11 +130,12 @@ impl Default for LocalizerConfig {
 }
 
 impl LocalizerConfig {
-    /// [`RansacConfig::new`] and `min_matches` = [`MIN_CORRESPONDENCES`].
+    /// [`RansacConfig::new`], `min_matches` and `min_inliers` = [`MIN_CORRESPONDENCES`].
     pub const fn new() -> Self {
         Self {
             ransac: RansacConfig::new(),
             min_matches: MIN_CORRESPONDENCES,
+            min_inliers: MIN_CORRESPONDENCES,
         }
     }
 }
@@ -164,6 +168,13 @@ pub enum Failure {
         /// Merged matches found.
         found: usize,
     },
+    /// The best pose has fewer inliers than `min_inliers`.
+    TooFewInliers {
+        /// The configured minimum.
+        needed: usize,
+        /// Inliers of the best pose.
+        found: usize,
+    },
     /// The matched 3D points or keypoints are coincident or collinear.
     DegenerateMatches,
     /// RANSAC found no pose hypothesis.
@@ -181,6 +192,9 @@ impl fmt::Display for Failure {
             }
             Failure::TooFewMatches { needed, found } => {
                 write!(f, "too few matches: {found}, at least {needed} needed")
+            }
+            Failure::TooFewInliers { needed, found } => {
+                write!(f, "too few inliers: {found}, at least {needed} needed")
             }
             Failure::DegenerateMatches => write!(f, "degenerate matches (collinear points)"),
             Failure::NoPoseFound => write!(f, "RANSAC found no pose"),
@@ -550,7 +564,8 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         Ok(())
     }
 
-    /// RANSAC-PnP + LM on the merged correspondences; marks their inliers.
+    /// RANSAC-PnP + LM on the merged correspondences; marks the inliers of an accepted
+    /// pose.
     fn solve(
         &mut self,
         config: &LocalizerConfig,
@@ -567,11 +582,17 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         let points = self.points.get(..len).unwrap_or(&[]);
         match estimate_pose(bearings, points, &config.ransac, &mut self.pnp) {
             Ok(estimate) => {
+                localization.counts.inliers = estimate.inlier_count;
+                localization.ransac_iterations = estimate.iterations;
+                if estimate.inlier_count < config.min_inliers {
+                    return Ok(Err(Failure::TooFewInliers {
+                        needed: config.min_inliers,
+                        found: estimate.inlier_count,
+                    }));
+                }
                 for (c, &inlier) in self.merged.iter_mut().zip(estimate.inlier_mask) {
                     c.inlier = inlier;
                 }
-                localization.counts.inliers = estimate.inlier_count;
-                localization.ransac_iterations = estimate.iterations;
                 Ok(Ok(estimate.pose))
             }
             Err(Error::NoPoseFound) => Ok(Err(Failure::NoPoseFound)),
@@ -586,6 +607,11 @@ fn check_config(config: &LocalizerConfig) -> Result<()> {
     if config.min_matches < MIN_CORRESPONDENCES {
         return Err(Error::InvalidConfig {
             parameter: "min_matches",
+        });
+    }
+    if config.min_inliers < MIN_CORRESPONDENCES {
+        return Err(Error::InvalidConfig {
+            parameter: "min_inliers",
         });
     }
     let ransac = &config.ransac;

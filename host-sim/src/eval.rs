@@ -552,7 +552,10 @@ pub fn evaluate(
     let timing = |f: fn(&TimingsMs) -> f64| mean(per_query.iter().map(|q| f(&q.timings_ms)));
     Ok(Report {
         scene: scene.name.clone(),
-        matcher: String::new(),
+        matcher: match matching {
+            Matching::Oracle => "oracle".into(),
+            Matching::Model { .. } => "model".into(),
+        },
         precision_sinkhorn: precision,
         k: options.protocol.k,
         seed: options.protocol.seed,
