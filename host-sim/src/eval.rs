@@ -93,7 +93,11 @@ pub enum SinkhornPrecision {
 
 /// The repository's shipped model: `<repo>/models/gomatch-int8.bin`.
 pub fn default_model_path() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/gomatch-int8.bin")
+    let host_sim = Path::new(env!("CARGO_MANIFEST_DIR"));
+    host_sim
+        .parent()
+        .unwrap_or(host_sim)
+        .join("models/gomatch-int8.bin")
 }
 
 /// Microseconds from [`Instant`], the host's [`Clock`] for the core's stage timings.
