@@ -495,7 +495,7 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         }
         let db = self.view.get(..len).unwrap_or(&[]);
         if len < self.matcher.min_points() {
-            log::debug!("view {view}: {len} points in front, skipped");
+            log::debug!("map view {view}: {len} points in front, skipped");
             return Ok(false);
         }
         let set = self.matcher.match_view(model, db)?;
@@ -515,7 +515,7 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         }
         counts.classified += accepted;
         log::debug!(
-            "view {view}: {len} points, {} mutual matches, {accepted} accepted, {} Sinkhorn iterations",
+            "map view {view}: {len} points, {} mutual matches, {accepted} accepted, {} Sinkhorn iterations",
             set.len(),
             set.sinkhorn_iterations()
         );

@@ -42,6 +42,24 @@ pub struct Args {
     /// Storage of the Sinkhorn cost matrix.
     #[arg(long, value_enum, default_value_t = SinkhornPrecision::F16)]
     pub precision_sinkhorn: SinkhornPrecision,
+    /// Print the core's log (per-view match counts, stage timings) to stderr.
+    #[arg(long)]
+    pub verbose: bool,
+}
+
+/// Writes the core's `log` records to stderr.
+struct StderrLogger;
+
+impl log::Log for StderrLogger {
+    fn enabled(&self, _: &log::Metadata<'_>) -> bool {
+        true
+    }
+
+    fn log(&self, record: &log::Record<'_>) {
+        eprintln!("[{} {}] {}", record.level(), record.target(), record.args());
+    }
+
+    fn flush(&self) {}
 }
 
 fn kib(bytes: usize) -> String {
@@ -110,6 +128,12 @@ fn print_memory(report: &Report) {
 /// Runs `gomatch-sim demo`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let started = std::time::Instant::now();
+    if args.verbose {
+        static LOGGER: StderrLogger = StderrLogger;
+        log::set_logger(&LOGGER)
+            .map(|()| log::set_max_level(log::LevelFilter::Debug))
+            .map_err(|e| anyhow::anyhow!("installing the logger: {e}"))?;
+    }
     let scene = synthetic_scene(args.seed, args.scene);
     println!(
         "synthetic scene {}: {} images, {} cameras, {} 3D points",
