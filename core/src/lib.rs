@@ -43,6 +43,7 @@ pub use error::{Error, Result};
 pub use localizer::{
     Clock, Correspondence, Failure, Localization, Localizer, LocalizerConfig, Query, ViewSelection,
 };
+pub use map::Map;
 pub use matcher::{MatchSet, Matcher, Observer, Stage};
 pub use pose::Pose;
 pub use ransac::{estimate_pose, PnpEstimate, PnpWorkspace, RansacConfig};
