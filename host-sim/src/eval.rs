@@ -473,10 +473,8 @@ fn run_workers<S: PlanScalar + Send>(
                     .spawn_scoped(scope, move || -> anyhow::Result<()> {
                         let mut localizer = Localizer::<CAPACITY, S>::new();
                         let mut workspace = PnpWorkspace::<CAPACITY>::new();
-                        for (i, sample) in samples.iter().enumerate().skip(worker) {
-                            if i % threads != worker {
-                                continue;
-                            }
+                        for (i, sample) in samples.iter().enumerate().skip(worker).step_by(threads)
+                        {
                             let outcome = match matching {
                                 Matching::Oracle => oracle_outcome(
                                     sample,
