@@ -20,3 +20,6 @@ pub mod synthetic;
 pub mod pnp;
 
 pub mod conform;
+
+pub mod demo;
+pub mod eval;
