@@ -5,4 +5,4 @@ set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 venv="$("$here/setup_venv.sh")"
 cd "$here"
-exec "$venv/bin/python" -m pytest -q -p no:cacheprovider tests "$@"
+exec "$venv/bin/python" -m pytest -q -rs -p no:cacheprovider tests "$@"

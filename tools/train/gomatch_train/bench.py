@@ -4,17 +4,28 @@
 
 A config is "<feature_dim>x<encoder_blocks>x<classifier_blocks>". Each measurement uses a synthetic sample with
 `points` query keypoints and `points` database points, half of them GT matches (the training outlier rate), and
-reports the median over `--repeats` steps after 2 warm-up steps.
+reports the fastest and the median of `--repeats` steps after 2 warm-up steps (on a shared machine the fastest step
+is the better estimate of uncontended speed), with the 1-minute load average when the row was measured.
+
+    python -m gomatch_train.bench --batching --threads 1
+
+compares, for the encoder alone, 16 samples processed one at a time with 16 equal-sized samples processed as one
+batched tensor: the most that batching same-sized samples could save.
 """
 
 import argparse
+import os
 import statistics
 import time
 
 import numpy as np
 import torch
 
+import torch.nn.functional as F
+
 from .config import ModelConfig
+from .encoder import PointResNet
+from .layers import INSTANCE_NORM_EPS
 from .loss import classifier_labels, classifier_loss, match_loss
 from .model import GoMatch
 from .runtime import keep_freed_memory
@@ -35,19 +46,51 @@ def bench_sample(points: int, seed: int = 0):
     return pts2d, pts3d, torch.from_numpy(match)
 
 
-def train_step_seconds(model: GoMatch, sample, repeats: int) -> float:
-    pts2d, pts3d, match = sample
+def timed(step, repeats: int):
+    """(fastest, median) seconds of `repeats` calls of `step` after 2 warm-up calls."""
     times = []
     for i in range(repeats + 2):
         start = time.perf_counter()
-        result = model(pts2d, pts3d)
-        loss = match_loss(result.log_plan, match) + classifier_loss(
-            result.cls_logits, classifier_labels(result.i3d, result.i2d, match)
-        )
-        loss.backward()
+        step()
         if i >= 2:
             times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return min(times), statistics.median(times)
+
+
+def train_step(model: GoMatch, sample) -> None:
+    pts2d, pts3d, match = sample
+    result = model(pts2d, pts3d)
+    loss = match_loss(result.log_plan, match) + classifier_loss(
+        result.cls_logits, classifier_labels(result.i3d, result.i2d, match)
+    )
+    loss.backward()
+
+
+def batched_encoder(encoder: PointResNet, points: torch.Tensor) -> torch.Tensor:
+    """The encoder on a (B, N, 2) batch of equal-sized sets, channel-major with per-set InstanceNorm."""
+
+    def linear(x, layer):
+        return torch.baddbmm(layer.bias[None, :, None], layer.matrix().expand(x.shape[0], -1, -1), x)
+
+    x = linear(points.transpose(1, 2).contiguous(), encoder.conv_in[0])
+    for i in range(encoder.blocks):
+        block = getattr(encoder, f"conv_{i}")
+        y = linear(x, block.preconv[0])
+        y = F.instance_norm(linear(y, block.conv1[0]), eps=INSTANCE_NORM_EPS)
+        y = F.instance_norm(linear(y, block.conv2[0]), eps=INSTANCE_NORM_EPS)
+        x = F.relu(y) + x
+    return x
+
+
+def batching_report(threads: int, repeats: int) -> None:
+    torch.set_num_threads(threads)
+    encoder = PointResNet(2, 128, 12)
+    points = torch.rand(16, 256, 2)
+    one_by_one = timed(lambda: [encoder(p).sum().backward() for p in points], repeats)
+    batched = timed(lambda: batched_encoder(encoder, points).sum().backward(), repeats)
+    print(f"encoder (128 wide, 12 blocks) forward+backward of 16 samples x 256 points, {threads} thread(s):")
+    print(f"  one sample at a time: fastest {one_by_one[0] * 1e3:.0f} ms, median {one_by_one[1] * 1e3:.0f} ms")
+    print(f"  one batched tensor:   fastest {batched[0] * 1e3:.0f} ms, median {batched[1] * 1e3:.0f} ms")
 
 
 def main(argv=None) -> None:
@@ -55,12 +98,17 @@ def main(argv=None) -> None:
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--points", type=int, nargs="+", default=[256, 512])
     parser.add_argument("--configs", nargs="+", default=["128x12x4", "96x6x4", "64x6x4", "64x4x2"])
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--batching", action="store_true", help="encoder: per-sample loop vs batched tensor")
     args = parser.parse_args(argv)
     keep_freed_memory()
     torch.manual_seed(0)
-    print("| config (d x enc x cls) | params | points | threads | ms / sample | samples/s |")
-    print("|---|---|---|---|---|---|")
+    if args.batching:
+        for threads in args.threads:
+            batching_report(threads, args.repeats)
+        return
+    print("| config (d x enc x cls) | params | points | threads | fastest ms | median ms | samples/s (fastest) | load |")
+    print("|---|---|---|---|---|---|---|---|")
     for text in args.configs:
         model = GoMatch(parse_config(text))
         params = sum(p.numel() for p in model.parameters())
@@ -68,8 +116,13 @@ def main(argv=None) -> None:
             sample = bench_sample(points)
             for threads in args.threads:
                 torch.set_num_threads(threads)
-                seconds = train_step_seconds(model, sample, args.repeats)
-                print(f"| {text} | {params} | {points} | {threads} | {seconds * 1e3:.0f} | {1 / seconds:.2f} |", flush=True)
+                fastest, median = timed(lambda: train_step(model, sample), args.repeats)
+                load = os.getloadavg()[0]
+                print(
+                    f"| {text} | {params} | {points} | {threads} | {fastest * 1e3:.0f} | {median * 1e3:.0f} "
+                    f"| {1 / fastest:.2f} | {load:.1f} |",
+                    flush=True,
+                )
 
 
 if __name__ == "__main__":
