@@ -4,8 +4,9 @@
 
 A config is "<feature_dim>x<encoder_blocks>x<classifier_blocks>". Each measurement uses a synthetic sample with
 `points` query keypoints and `points` database points, half of them GT matches (the training outlier rate), and
-reports the fastest and the median of `--repeats` steps after 2 warm-up steps (on a shared machine the fastest step
-is the better estimate of uncontended speed), with the 1-minute load average when the row was measured.
+reports, over `--repeats` steps after 2 warm-up steps, the fastest and the median wall time and the median process
+CPU time, with the 1-minute load average when the row was measured. On a shared machine the wall time includes time
+spent waiting for a core; with one thread the CPU time is the better estimate of the uncontended step time.
 
     python -m gomatch_train.bench --batching --threads 1
 
@@ -47,14 +48,15 @@ def bench_sample(points: int, seed: int = 0):
 
 
 def timed(step, repeats: int):
-    """(fastest, median) seconds of `repeats` calls of `step` after 2 warm-up calls."""
-    times = []
+    """(fastest wall, median wall, median CPU) seconds of `repeats` calls of `step` after 2 warm-up calls."""
+    wall, cpu = [], []
     for i in range(repeats + 2):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         step()
         if i >= 2:
-            times.append(time.perf_counter() - start)
-    return min(times), statistics.median(times)
+            wall.append(time.perf_counter() - start)
+            cpu.append(time.process_time() - start_cpu)
+    return min(wall), statistics.median(wall), statistics.median(cpu)
 
 
 def train_step(model: GoMatch, sample) -> None:
@@ -89,8 +91,8 @@ def batching_report(threads: int, repeats: int) -> None:
     one_by_one = timed(lambda: [encoder(p).sum().backward() for p in points], repeats)
     batched = timed(lambda: batched_encoder(encoder, points).sum().backward(), repeats)
     print(f"encoder (128 wide, 12 blocks) forward+backward of 16 samples x 256 points, {threads} thread(s):")
-    print(f"  one sample at a time: fastest {one_by_one[0] * 1e3:.0f} ms, median {one_by_one[1] * 1e3:.0f} ms")
-    print(f"  one batched tensor:   fastest {batched[0] * 1e3:.0f} ms, median {batched[1] * 1e3:.0f} ms")
+    for name, (fastest, median, cpu) in (("one sample at a time", one_by_one), ("one batched tensor  ", batched)):
+        print(f"  {name}: wall fastest {fastest * 1e3:.0f} ms, median {median * 1e3:.0f} ms; CPU {cpu * 1e3:.0f} ms")
 
 
 def main(argv=None) -> None:
@@ -107,7 +109,7 @@ def main(argv=None) -> None:
         for threads in args.threads:
             batching_report(threads, args.repeats)
         return
-    print("| config (d x enc x cls) | params | points | threads | fastest ms | median ms | samples/s (fastest) | load |")
+    print("| config (d x enc x cls) | params | points | threads | wall fastest ms | wall median ms | CPU ms | load |")
     print("|---|---|---|---|---|---|---|---|")
     for text in args.configs:
         model = GoMatch(parse_config(text))
@@ -116,11 +118,11 @@ def main(argv=None) -> None:
             sample = bench_sample(points)
             for threads in args.threads:
                 torch.set_num_threads(threads)
-                fastest, median = timed(lambda: train_step(model, sample), args.repeats)
+                fastest, median, cpu = timed(lambda: train_step(model, sample), args.repeats)
                 load = os.getloadavg()[0]
                 print(
                     f"| {text} | {params} | {points} | {threads} | {fastest * 1e3:.0f} | {median * 1e3:.0f} "
-                    f"| {1 / fastest:.2f} | {load:.1f} |",
+                    f"| {cpu * 1e3:.0f} | {load:.1f} |",
                     flush=True,
                 )
 

@@ -17,7 +17,7 @@ from .attention import Attention, coordinate_neighbours
 from .classifier import MatchClassifier
 from .config import ModelConfig
 from .encoder import PointResNet
-from .sinkhorn import cost_with_dustbins, descriptor_distances, log_sinkhorn, marginals, mutual_assignment
+from .sinkhorn import cost_with_dustbins, descriptor_distances, marginals, mutual_assignment, transport
 
 
 @dataclass
@@ -62,7 +62,7 @@ class RawMatcher(nn.Module):
         desc3d = F.normalize(desc3d, p=2, dim=1)
         cost = cost_with_dustbins(descriptor_distances(desc3d, desc2d), self.bin_score)
         mu, nu = marginals(desc3d.shape[0], desc2d.shape[0], cost)
-        log_plan, iterations = log_sinkhorn(cost, mu, nu, self.config.sinkhorn_eps, self.config.sinkhorn_iters)
+        log_plan, iterations = transport(cost, mu, nu, self.config.sinkhorn_eps, self.config.sinkhorn_iters)
         return desc2d, desc3d, cost, log_plan, iterations
 
 

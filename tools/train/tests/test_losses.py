@@ -5,7 +5,7 @@ import math
 import torch
 
 from gomatch_train.loss import classifier_labels, classifier_loss, match_loss
-from gomatch_train.sinkhorn import log_sinkhorn, marginals, mutual_assignment
+from gomatch_train.sinkhorn import log_sinkhorn, marginals, mutual_assignment, scaling_sinkhorn, transport
 
 
 def test_match_loss_averages_gt_matches_and_dustbins():
@@ -78,3 +78,39 @@ def test_sinkhorn_plan_has_the_requested_marginals():
     assert iterations < 200  # converged, stopped early
     assert torch.allclose(plan.sum(1), mu, atol=1e-5)
     assert torch.allclose(plan.sum(0), nu, atol=1e-5)
+
+
+def random_cost(n3d, n2d, seed=0):
+    torch.manual_seed(seed)
+    cost = torch.rand(n3d + 1, n2d + 1) * 1.5
+    cost[-1, :] = 1.0
+    cost[:, -1] = 1.0
+    return cost
+
+
+def test_exp_domain_sinkhorn_matches_the_log_domain_iteration_and_gradient():
+    n3d, n2d = 60, 45
+    cost = random_cost(n3d, n2d).requires_grad_()
+    mu, nu = marginals(n3d, n2d, cost)
+    reference, iters_ref = log_sinkhorn(cost, mu, nu, 0.1, 20)
+    fast, iters_fast = scaling_sinkhorn(cost, mu, nu, 0.1, 20)
+    assert iters_fast == iters_ref
+    assert torch.allclose(fast, reference, atol=1e-4)
+    assert torch.allclose(fast.exp(), reference.exp(), atol=1e-6)
+
+    weights = torch.rand_like(reference)
+    (grad_ref,) = torch.autograd.grad((reference * weights).sum(), cost)
+    (grad_fast,) = torch.autograd.grad((fast * weights).sum(), cost)
+    assert torch.allclose(grad_fast, grad_ref, atol=1e-3 * grad_ref.abs().max().item())
+
+
+def test_transport_uses_the_reference_arithmetic_without_autograd_and_for_wide_cost_ranges():
+    n3d, n2d = 30, 20
+    cost = random_cost(n3d, n2d, seed=1)
+    mu, nu = marginals(n3d, n2d, cost)
+    with torch.no_grad():
+        assert torch.equal(transport(cost, mu, nu, 0.1, 20)[0], log_sinkhorn(cost, mu, nu, 0.1, 20)[0])
+    wide = cost.clone()
+    wide[-1, -1] = 9.0  # (max - min) / eps > 80: exp(-cost / eps) would underflow
+    assert torch.equal(transport(wide, mu, nu, 0.1, 20)[0], log_sinkhorn(wide, mu, nu, 0.1, 20)[0])
+    assert not torch.equal(transport(cost, mu, nu, 0.1, 20)[0], log_sinkhorn(cost, mu, nu, 0.1, 20)[0])
