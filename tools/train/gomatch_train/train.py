@@ -101,12 +101,12 @@ def epoch_batches(samples: list, epoch: int, args) -> list:
     return [prepared[i : i + args.batch] for i in range(0, len(prepared), args.batch)]
 
 
-def validation_set(samples: list, args) -> list:
-    """Validation samples, subsampled once (no outlier control, budget --val-max-points)."""
+def validation_set(samples: list, seed: int, max_points: int) -> list:
+    """Validation samples, subsampled once (no outlier control, at most `max_points` per set)."""
     prepared = []
     for index, sample in enumerate(samples):
-        rng = np.random.default_rng([args.seed, 1_000_003, index])
-        drawn = subsample(sample, rng, (0.0, 1.0), args.val_max_points, VAL_MIN_POINTS)
+        rng = np.random.default_rng([seed, 1_000_003, index])
+        drawn = subsample(sample, rng, (0.0, 1.0), max_points, VAL_MIN_POINTS)
         if drawn is not None:
             prepared.append(drawn)
     return prepared
@@ -227,7 +227,7 @@ def train(args) -> dict:
         log(f"no checkpoint in {args.out}; starting a new run")
 
     samples = [s for path in args.train for s in load_samples(path)]
-    val = validation_set(load_samples(args.val), args)
+    val = validation_set(load_samples(args.val), args.seed, args.val_max_points)
     params = sum(p.numel() for p in run.model.parameters())
     log(f"model {run.model.config.to_json()} ({params} parameters); {len(samples)} training samples, "
         f"{len(val)} validation samples")  # fmt: skip
@@ -251,7 +251,8 @@ def train(args) -> dict:
                 log(f"epoch {run.epoch} batch {run.next_batch}/{len(batches)} step {run.step}: "
                     f"loss {s['loss']:.4f} (match {s['match_loss']:.4f}, cls {s['cls_loss']:.4f}) "
                     f"match P/R {s['match_precision']:.3f}/{s['match_recall']:.3f} "
-                    f"{window.samples / max(now - window_start, 1e-9):.2f} samples/s")  # fmt: skip
+                    f"{window.samples / max(now - window_start, 1e-9):.2f} samples/s, "
+                    f"{(now - start) / 60:.1f} min, {time.process_time() / 60:.1f} CPU min")  # fmt: skip
                 window, window_start = Totals(), now
             out_of_time = args.max_minutes is not None and now - start >= args.max_minutes * 60
             out_of_steps = args.max_steps is not None and run.step >= args.max_steps

@@ -7,7 +7,7 @@ import pytest
 import torch
 from safetensors import safe_open
 
-from gomatch_train import train
+from gomatch_train import train, validate
 from gomatch_train.config import ModelConfig
 from gomatch_train.evaluate import assess
 from gomatch_train.export import load_export
@@ -87,3 +87,14 @@ def test_resume_refuses_changed_options(data, tmp_path):
     train.main(cli(data, out, "--max-steps", "1"))
     with pytest.raises(SystemExit, match="--lr"):
         train.main(cli(data, out, "--resume", "--lr", "0.01"))
+
+
+def test_validate_cli_reports_the_training_validation_metrics(data, tmp_path, capsys):
+    out = tmp_path / "run"
+    train.main(cli(data, out, "--epochs", "1"))
+    capsys.readouterr()
+    validate.main([str(out / "best.safetensors"), str(data / "val.safetensors"), "--max-points", "64"])
+    reported = json.loads(capsys.readouterr().out)
+    recorded = json.loads((out / "history.jsonl").read_text().splitlines()[0])
+    for key in ("loss", "match_precision", "match_recall", "cls_precision", "cls_recall"):
+        assert reported[key] == pytest.approx(recorded[key], rel=1e-6)
