@@ -67,6 +67,8 @@ class RawMatcher(nn.Module):
 
 
 class Matcher(nn.Module):
+    """Raw matcher, mutual assignment on the plan, and the outlier classifier on the proposed matches."""
+
     def __init__(self, config: ModelConfig):
         super().__init__()
         self.raw_matcher = RawMatcher(config)

@@ -1,5 +1,6 @@
 """Matching layer (paper sec. 3 "Optimal transport", supp. eq. 9-10): descriptor distances with dustbins,
-log-domain Sinkhorn and mutual nearest-neighbour assignment.
+log-domain Sinkhorn (plus the same iteration in the exp domain, used for training speed) and mutual
+nearest-neighbour assignment.
 
 All matrices are (N3 + 1, N2 + 1): rows are 3D points, columns 2D keypoints, the last row/column the dustbin.
 """

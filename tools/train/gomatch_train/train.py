@@ -232,8 +232,13 @@ def train(args) -> dict:
     log(f"model {run.model.config.to_json()} ({params} parameters); {len(samples)} training samples, "
         f"{len(val)} validation samples")  # fmt: skip
 
-    start = last_ckpt = time.monotonic()
+    if not val:
+        raise SystemExit(f"no validation sample in {args.val} has >= {VAL_MIN_POINTS} points in both sets")
     summary = run.history[-1] if run.history else {}
+    if args.max_steps is not None and run.step >= args.max_steps:
+        log(f"step limit {args.max_steps} already reached (step {run.step}); nothing to do")
+        return summary
+    start = last_ckpt = time.monotonic()
     while run.epoch < args.epochs:
         batches = epoch_batches(samples, run.epoch, args)
         if not batches:
