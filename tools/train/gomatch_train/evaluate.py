@@ -68,6 +68,19 @@ class Totals:
         for key in self.counts:
             self.counts[key] += other.counts[key]
 
+    def to_tensor(self) -> torch.Tensor:
+        values = [self.samples, self.match_loss, self.cls_loss] + [self.counts[k] for k in self.counts]
+        return torch.tensor(values, dtype=torch.float64)
+
+    @classmethod
+    def from_tensor(cls, t: torch.Tensor) -> "Totals":
+        totals = cls()
+        values = t.tolist()
+        totals.samples, totals.match_loss, totals.cls_loss = int(values[0]), values[1], values[2]
+        for key, value in zip(totals.counts, values[3:]):
+            totals.counts[key] = int(value)
+        return totals
+
     def summary(self) -> dict:
         c = self.counts
         n = max(self.samples, 1)

@@ -4,7 +4,7 @@
         --epochs 20 --batch 16 --max-points 256 --threads 2 [--feature-dim 64 --encoder-blocks 6] [--resume]
 
 One forward pass per sample (InstanceNorm statistics are per set and set sizes differ); gradients of `--batch`
-samples are accumulated (mean loss) before each Adam step. Every epoch draws a fresh subsample of every training
+samples are accumulated (mean loss) before each Adam step, optionally shared among `--workers` processes. Every epoch draws a fresh subsample of every training
 sample (outlier rate and point budget, see dataset.py) from a generator seeded by (seed, epoch, sample), so a run
 resumed from a checkpoint repeats exactly what the uninterrupted run would have done.
 
@@ -31,6 +31,7 @@ from .dataset import load_samples, subsample
 from .evaluate import Totals, assess
 from .export import save_export
 from .model import GoMatch
+from .parallel import Group, launch
 from .runtime import configure_cpu
 
 CHECKPOINT = "checkpoint.pt"
@@ -56,7 +57,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--outlier-rate", type=float, nargs=2, default=[0.5, 0.5], metavar=("LOW", "HIGH"),
                    help="keypoint outlier rate range enforced on training samples (reference: 0.5 0.5)")
     p.add_argument("--val-max-points", type=int, default=None, help="validation point budget (default --max-points)")
-    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads per worker")
+    p.add_argument("--workers", type=int, default=1, help="data-parallel processes sharing each batch")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--feature-dim", type=int, default=ModelConfig.feature_dim)
     p.add_argument("--encoder-blocks", type=int, default=ModelConfig.encoder_blocks)
@@ -69,8 +71,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.val_max_points is None:
         args.val_max_points = args.max_points
-    if args.batch < 1 or args.epochs < 0:
-        p.error("--batch must be >= 1 and --epochs >= 0")
+    if args.batch < 1 or args.epochs < 0 or args.workers < 1:
+        p.error("--batch and --workers must be >= 1 and --epochs >= 0")
+    if args.workers > 1 and args.device != "cpu":
+        p.error("--workers > 1 is for CPU training")
     return args
 
 
@@ -113,14 +117,14 @@ def validation_set(samples: list, seed: int, max_points: int) -> list:
 
 
 @torch.no_grad()
-def validate(model: GoMatch, val: list, device) -> dict:
+def validate(model: GoMatch, val: list, device, group: Group = Group()) -> dict:
     model.eval()
     totals = Totals()
-    for prepared in val:
+    for prepared in group.share(val):
         pts2d, pts3d, match = to_tensors(prepared, device)
         totals.add(assess(model(pts2d, pts3d), match, model.config.match_threshold))
     model.train()
-    return totals.summary()
+    return Totals.from_tensor(group.sum_(totals.to_tensor())).summary()
 
 
 def rng_states() -> dict:
@@ -199,24 +203,28 @@ class Run:
         self.history = state["history"]
         restore_rng_states(state["rng"])
 
-    def train_batch(self, batch: list) -> Totals:
+    def train_batch(self, batch: list, group: Group) -> Totals:
+        """One Adam step on the mean loss of `batch`; this process computes its share. Returns its totals."""
         self.optimizer.zero_grad(set_to_none=True)
         totals = Totals()
-        for prepared in batch:
+        for prepared in group.share(batch):
             pts2d, pts3d, match = to_tensors(prepared, self.device)
             outcome = assess(self.model(pts2d, pts3d), match, self.model.config.match_threshold)
             (outcome.loss / len(batch)).backward()
             totals.add(outcome)
+        group.sum_gradients(self.model.parameters())
         self.optimizer.step()
         return totals
 
 
-def log(message: str) -> None:
-    print(message, flush=True)
+def train(args, group: Group = Group()) -> dict:
+    """Run (or resume) training as process `group.rank` of `group.world`; returns the last validation summary
+    (empty if none ran). Only the main process prints and writes files."""
 
+    def log(message: str) -> None:
+        if group.is_main:
+            print(message, flush=True)
 
-def train(args) -> dict:
-    """Run (or resume) training; returns the last validation summary (empty if none ran)."""
     configure_cpu(args.threads)
     os.makedirs(args.out, exist_ok=True)
     run = Run(args)
@@ -247,11 +255,12 @@ def train(args) -> dict:
             log(f"epoch {run.epoch}: {sum(len(b) for b in batches)} samples in {len(batches)} batches")
         window, window_start = Totals(), time.monotonic()
         while run.next_batch < len(batches):
-            window.merge(run.train_batch(batches[run.next_batch]))
+            window.merge(run.train_batch(batches[run.next_batch], group))
             run.next_batch += 1
             run.step += 1
             now = time.monotonic()
             if run.step % args.log_every == 0 or run.next_batch == len(batches):
+                window = Totals.from_tensor(group.sum_(window.to_tensor()))
                 s = window.summary()
                 log(f"epoch {run.epoch} batch {run.next_batch}/{len(batches)} step {run.step}: "
                     f"loss {s['loss']:.4f} (match {s['match_loss']:.4f}, cls {s['cls_loss']:.4f}) "
@@ -261,14 +270,17 @@ def train(args) -> dict:
                 window, window_start = Totals(), now
             out_of_time = args.max_minutes is not None and now - start >= args.max_minutes * 60
             out_of_steps = args.max_steps is not None and run.step >= args.max_steps
-            if out_of_time or out_of_steps or now - last_ckpt >= args.ckpt_minutes * 60:
-                run.save()
+            checkpoint_due = now - last_ckpt >= args.ckpt_minutes * 60
+            out_of_time, checkpoint_due = group.agree([out_of_time, checkpoint_due])
+            if out_of_time or out_of_steps or checkpoint_due:
+                if group.is_main:
+                    run.save()
                 last_ckpt = now
                 if out_of_time or out_of_steps:
                     log(f"stopping at step {run.step} ({'time' if out_of_time else 'step'} limit); checkpoint saved")
                     return summary
 
-        summary = validate(run.model, val, run.device)
+        summary = validate(run.model, val, run.device, group)
         summary["epoch"] = run.epoch
         summary["step"] = run.step
         improved = summary["loss"] < run.best_val_loss
@@ -279,19 +291,22 @@ def train(args) -> dict:
             f"{' (best)' if improved else ''}")  # fmt: skip
         if improved:
             run.best_val_loss = summary["loss"]
-            atomic_export(run.model, os.path.join(args.out, "best.safetensors"))
+            if group.is_main:
+                atomic_export(run.model, os.path.join(args.out, "best.safetensors"))
         run.history.append(summary)
         run.epoch += 1
         run.next_batch = 0
-        run.save()
+        if group.is_main:
+            run.save()
+            with open(os.path.join(args.out, "history.jsonl"), "w") as f:
+                f.writelines(json.dumps(entry) + "\n" for entry in run.history)
         last_ckpt = time.monotonic()
-        with open(os.path.join(args.out, "history.jsonl"), "w") as f:
-            f.writelines(json.dumps(entry) + "\n" for entry in run.history)
     return summary
 
 
 def main(argv=None) -> None:
-    train(parse_args(argv))
+    args = parse_args(argv)
+    launch(train, args, args.workers)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -27,3 +28,15 @@ def single_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(previous)
+
+
+@pytest.fixture(scope="session")
+def data(tmp_path_factory):
+    """A tiny synthetic training file (6 samples) and validation file (2 samples)."""
+    from gomatch_train.synthetic import random_sample, write_dataset
+
+    root = tmp_path_factory.mktemp("data")
+    rng = np.random.default_rng(11)
+    write_dataset(str(root / "train.safetensors"), [random_sample(rng, 120, 80, 40) for _ in range(6)])
+    write_dataset(str(root / "val.safetensors"), [random_sample(rng, 120, 80, 40) for _ in range(2)])
+    return root

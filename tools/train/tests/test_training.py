@@ -12,7 +12,7 @@ from gomatch_train.config import ModelConfig
 from gomatch_train.evaluate import assess
 from gomatch_train.export import load_export
 from gomatch_train.model import GoMatch
-from gomatch_train.synthetic import random_sample, write_dataset
+from gomatch_train.synthetic import random_sample
 
 TINY = ["--feature-dim", "32", "--encoder-blocks", "2", "--classifier-blocks", "1"]
 
@@ -32,15 +32,6 @@ def test_a_few_adam_steps_reduce_the_loss_on_one_sample():
         losses.append(outcome.loss.item())
     assert all(np.isfinite(losses))
     assert losses[-1] < losses[0] - 0.1, losses
-
-
-@pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    root = tmp_path_factory.mktemp("data")
-    rng = np.random.default_rng(11)
-    write_dataset(str(root / "train.safetensors"), [random_sample(rng, 120, 80, 40) for _ in range(6)])
-    write_dataset(str(root / "val.safetensors"), [random_sample(rng, 120, 80, 40) for _ in range(2)])
-    return root
 
 
 def cli(data, out, *extra):
