@@ -1,12 +1,13 @@
 """Train GoMatch (BVs) on `gomatch-dataset` files.
 
     python -m gomatch_train.train --train A.safetensors [B.safetensors ...] --val V.safetensors --out DIR \
-        --epochs 20 --batch 16 --max-points 256 --threads 2 [--feature-dim 64 --encoder-blocks 6] [--resume]
+        --epochs 20 --batch 16 --max-points 256 --workers 2 [--feature-dim 64 --encoder-blocks 6] [--resume]
 
 One forward pass per sample (InstanceNorm statistics are per set and set sizes differ); gradients of `--batch`
-samples are accumulated (mean loss) before each Adam step, optionally shared among `--workers` processes. Every epoch draws a fresh subsample of every training
-sample (outlier rate and point budget, see dataset.py) from a generator seeded by (seed, epoch, sample), so a run
-resumed from a checkpoint repeats exactly what the uninterrupted run would have done.
+samples are accumulated (mean loss) before each Adam step, optionally shared among `--workers` processes. Every
+epoch draws a fresh subsample of every training sample (outlier rate and point budget, see dataset.py) from a
+generator seeded by (seed, epoch, sample), so a run resumed from a checkpoint repeats exactly what the uninterrupted
+run would have done.
 
 Files in DIR:
     checkpoint.pt       model, optimizer, position (epoch, batch), RNG states, history; every epoch and every
@@ -192,7 +193,9 @@ class Run:
         mine = self.fixed_options()
         changed = {k: (v, mine.get(k)) for k, v in state["options"].items() if mine.get(k) != v}
         if changed:
-            details = ", ".join(f"--{k.replace('_', '-')}: checkpoint {a!r}, now {b!r}" for k, (a, b) in changed.items())
+            details = ", ".join(
+                f"--{k.replace('_', '-')}: checkpoint {a!r}, now {b!r}" for k, (a, b) in changed.items()
+            )
             raise SystemExit(f"cannot resume {self.checkpoint_path}: options differ ({details})")
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])

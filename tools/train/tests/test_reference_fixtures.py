@@ -112,7 +112,8 @@ def test_stages_in_isolation(case, model):
         mu, nu = marginals(n3d, n2d, cost)
         assert_close("ot_mu", mu, fx.array("ot_mu"), 1e-7)
         assert_close("ot_nu", nu, fx.array("ot_nu"), 1e-7)
-        log_plan, iterations = log_sinkhorn(fx.tensor("ot_cost"), mu, nu, raw.config.sinkhorn_eps, raw.config.sinkhorn_iters)
+        eps, iters = raw.config.sinkhorn_eps, raw.config.sinkhorn_iters
+        log_plan, iterations = log_sinkhorn(fx.tensor("ot_cost"), mu, nu, eps, iters)
         assert iterations == fx.index["sinkhorn"]["iterations_run"]
         assert_close("scores", log_plan.exp(), fx.array("scores"), PLAN_TOLERANCE)
 
