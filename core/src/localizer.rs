@@ -19,6 +19,8 @@
 
 use core::fmt;
 
+use serde::{Deserialize, Serialize};
+
 use crate::camera::Camera;
 use crate::error::{Error, Input, Result};
 use crate::map::Map;
@@ -147,7 +149,7 @@ pub trait Clock {
 }
 
 /// Why a valid query could not be localized.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Failure {
     /// Fewer query keypoints than the matcher needs.
     TooFewKeypoints {
@@ -203,7 +205,7 @@ impl fmt::Display for Failure {
 }
 
 /// Match counts per stage, summed over the views.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct MatchCounts {
     /// Matches of the mutual assignment (with the reference's fallback).
     pub mutual: usize,
@@ -216,7 +218,7 @@ pub struct MatchCounts {
 }
 
 /// Stage timings in microseconds, from the caller's [`Clock`].
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct StageTimings {
     /// Input checks, keypoint bearings and view selection.
     pub prepare_us: u64,
