@@ -41,7 +41,7 @@ pub struct Args {
     #[arg(long, default_value_t = 0)]
     pub scene: u64,
     /// Co-visible views of the query (the map holds only these).
-    #[arg(long, default_value_t = 5)]
+    #[arg(long, default_value_t = 10)]
     pub k: usize,
 }
 
