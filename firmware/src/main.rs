@@ -124,7 +124,10 @@ fn truth() -> Option<(Pose, f64)> {
 }
 
 /// Serves the embedded request and grades the reply.
-fn run(localizer: &'static mut Localizer<CAPACITY, f16>, device: &'static mut Device<CAPACITY, RX>) -> i32 {
+fn run(
+    localizer: &'static mut Localizer<CAPACITY, f16>,
+    device: &'static mut Device<CAPACITY, RX>,
+) -> i32 {
     if Model::from_bytes(MODEL).is_err() {
         return exit_code::MODEL_INVALID;
     }
@@ -185,7 +188,8 @@ extern "C" fn firmware_main() -> ! {
     // SAFETY: the image is single-threaded, has no interrupt handlers, and this function
     // runs once: these are the only references ever made to the two statics, so they are
     // unique for the rest of the program.
-    let (localizer, device) = unsafe { (&mut *addr_of_mut!(LOCALIZER), &mut *addr_of_mut!(DEVICE)) };
+    let (localizer, device) =
+        unsafe { (&mut *addr_of_mut!(LOCALIZER), &mut *addr_of_mut!(DEVICE)) };
     exit(run(localizer, device))
 }
 

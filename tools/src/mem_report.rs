@@ -469,11 +469,11 @@ fn repo_root() -> PathBuf {
         .map_or_else(|| PathBuf::from("."), Path::to_path_buf)
 }
 
+/// Model blobs by precision.
+pub type Blobs = Vec<(Precision, Vec<u8>)>;
+
 /// The model blob of each wanted precision, and a description of the source.
-pub fn model_blobs(
-    path: Option<&Path>,
-    precisions: &[Precision],
-) -> Result<(Vec<(Precision, Vec<u8>)>, String)> {
+pub fn model_blobs(path: Option<&Path>, precisions: &[Precision]) -> Result<(Blobs, String)> {
     let root = repo_root();
     let candidates = [
         (
