@@ -405,8 +405,9 @@ pub fn encode_frame<'o, T: Serialize>(message: &T, out: &'o mut [u8]) -> Option<
     postcard::to_slice_cobs(message, out).ok().map(|f| &*f)
 }
 
-/// Decodes one COBS frame (delimiter removed or not), in place, into a message: the
-/// whole frame must be one message. The errors are those the device replies with.
+/// Decodes one COBS frame, in place, into a message: the bytes up to the frame's zero
+/// delimiter (or all of them when it has none) must be exactly one message. The errors
+/// are those the device replies with.
 pub fn decode_frame<'f, T: Deserialize<'f>>(frame: &'f mut [u8]) -> Result<T, LinkError> {
     let end = frame.iter().position(|&b| b == 0).unwrap_or(frame.len());
     let frame = frame.get_mut(..end).unwrap_or(&mut []);
