@@ -19,6 +19,8 @@
 
 use core::fmt;
 
+use serde::{Deserialize, Serialize};
+
 use crate::camera::Camera;
 use crate::error::{Error, Input, Result};
 use crate::map::Map;
@@ -147,7 +149,7 @@ pub trait Clock {
 }
 
 /// Why a valid query could not be localized.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Failure {
     /// Fewer query keypoints than the matcher needs.
     TooFewKeypoints {
@@ -203,7 +205,7 @@ impl fmt::Display for Failure {
 }
 
 /// Match counts per stage, summed over the views.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct MatchCounts {
     /// Matches of the mutual assignment (with the reference's fallback).
     pub mutual: usize,
@@ -216,7 +218,7 @@ pub struct MatchCounts {
 }
 
 /// Stage timings in microseconds, from the caller's [`Clock`].
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct StageTimings {
     /// Input checks, keypoint bearings and view selection.
     pub prepare_us: u64,
@@ -293,24 +295,34 @@ impl Correspondence {
 
 /// Workspace and pipeline of the localizer for up to `N` query keypoints and `N` points
 /// per view, with the Sinkhorn cost stored as `S` (`f32` or `half::f16`).
+///
+/// Besides the [`Matcher`] and the [`PnpWorkspace`], per slot: one bearing buffer (the
+/// query's while it is encoded, then each view's in turn), the current view's map
+/// indices, one correspondence table (per keypoint its best match while the views are
+/// matched, then compacted by the merge) and the pose solver's input. The keypoints'
+/// `f64` bearings are recomputed from the query's pixels for the merged ones only.
 pub struct Localizer<const N: usize, S: PlanScalar = f32> {
     matcher: Matcher<N, S>,
     pnp: PnpWorkspace<N>,
-    /// Query keypoint bearings, for the network and for the pose solver.
-    query: [[f32; 2]; N],
-    query_f64: [[f64; 2]; N],
-    /// The current view's point bearings and their map indices.
-    view: [[f32; 2]; N],
+    /// Bearings given to the network: the query's until it is encoded, then the current
+    /// view's points.
+    network_input: [[f32; 2]; N],
+    /// Map indices of the current view's points, parallel to `network_input`.
     view_points: [u32; N],
-    /// Per query keypoint: its best accepted match so far, `(map point, probability)`.
-    best: [Option<(u32, f32)>; N],
-    /// Merged correspondences of the last call, by keypoint.
+    /// While matching: per query keypoint its best accepted match so far
+    /// (`probability` = [`UNMATCHED`] when none). After the merge: the correspondences
+    /// of the last call, by keypoint.
     merged: [Correspondence; N],
     merged_len: usize,
     /// Pose solver input, parallel to `merged`.
     bearings: [[f64; 2]; N],
     points: [[f64; 3]; N],
 }
+
+/// Probability of a keypoint without an accepted match while the views are matched. A
+/// match is accepted when its probability is above the model's (finite) threshold, so it
+/// is never `-inf`.
+const UNMATCHED: f32 = f32::NEG_INFINITY;
 
 impl<const N: usize, S: PlanScalar> Default for Localizer<N, S> {
     fn default() -> Self {
@@ -332,11 +344,8 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         Localizer {
             matcher: Matcher::new(),
             pnp: PnpWorkspace::new(),
-            query: [[0.0; 2]; N],
-            query_f64: [[0.0; 2]; N],
-            view: [[0.0; 2]; N],
+            network_input: [[0.0; 2]; N],
             view_points: [0; N],
-            best: [None; N],
             merged: [Correspondence::EMPTY; N],
             merged_len: 0,
             bearings: [[0.0; 2]; N],
@@ -394,10 +403,10 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             return Ok(Localization::failed(Failure::NoViews { skipped: 0 }));
         }
         self.matcher
-            .encode_query(model, self.query.get(..n).unwrap_or(&[]))?;
+            .encode_query(model, self.network_input.get(..n).unwrap_or(&[]))?;
         let encoded = now(clock);
 
-        self.best.iter_mut().for_each(|b| *b = None);
+        self.clear_matches(n);
         let mut counts = MatchCounts::default();
         let (mut used, mut skipped) = (0, 0);
         for &view in &selected {
@@ -407,7 +416,7 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             }
         }
         let matched = now(clock);
-        self.merge(map, n)?;
+        self.merge(map, query, n)?;
         counts.merged = self.merged_len;
         let merged = now(clock);
 
@@ -437,7 +446,8 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         Ok(localization)
     }
 
-    /// Checks the camera and keypoints and converts them to bearing vectors.
+    /// Checks the camera and keypoints and converts them to bearing vectors for the
+    /// network.
     fn set_query(&mut self, query: &Query<'_>) -> Result<()> {
         query.camera.check()?;
         let n = query.keypoints.len();
@@ -447,26 +457,27 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
                 requested: n,
             });
         }
-        let slots = self.query.iter_mut().zip(self.query_f64.iter_mut());
-        for (index, (pixel, (bearing, bearing64))) in query.keypoints.iter().zip(slots).enumerate()
+        for (index, (pixel, bearing)) in query
+            .keypoints
+            .iter()
+            .zip(self.network_input.iter_mut())
+            .enumerate()
         {
-            let non_finite = Error::NonFinite {
-                input: Input::Keypoints,
-                index,
-            };
-            if !pixel.iter().all(|v| v.is_finite()) {
-                return Err(non_finite);
-            }
-            let b = query
-                .camera
-                .pixel_to_bearing([f64::from(pixel[0]), f64::from(pixel[1])])?;
-            let narrow = [b[0] as f32, b[1] as f32];
-            if !narrow.iter().all(|v| v.is_finite()) {
-                return Err(non_finite);
-            }
-            (*bearing, *bearing64) = (narrow, b);
+            let b = keypoint_bearing(&query.camera, *pixel, index)?;
+            *bearing = [b[0] as f32, b[1] as f32];
         }
         Ok(())
+    }
+
+    /// Marks the first `n` keypoints as having no accepted match yet.
+    fn clear_matches(&mut self, n: usize) {
+        for (keypoint, slot) in self.merged.iter_mut().take(n).enumerate() {
+            *slot = Correspondence {
+                keypoint: keypoint as u16,
+                probability: UNMATCHED,
+                ..Correspondence::EMPTY
+            };
+        }
     }
 
     /// Matches the encoded query against one view and keeps, per keypoint, its best
@@ -487,13 +498,16 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             let p = map.point(index as usize).ok()?;
             Some((index, p.map(f64::from)))
         });
-        let slots = self.view.iter_mut().zip(self.view_points.iter_mut());
+        let slots = self
+            .network_input
+            .iter_mut()
+            .zip(self.view_points.iter_mut());
         for ((index, bearing), (slot, point)) in view_point_bearings(pose, points, N).zip(slots) {
             *slot = [bearing[0] as f32, bearing[1] as f32];
             *point = index;
             len += 1;
         }
-        let db = self.view.get(..len).unwrap_or(&[]);
+        let db = self.network_input.get(..len).unwrap_or(&[]);
         if len < self.matcher.min_points() {
             log::debug!("map view {view}: {len} points in front, skipped");
             return Ok(false);
@@ -504,13 +518,13 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         for m in set.inliers() {
             accepted += 1;
             let (Some(best), Some(&point)) = (
-                self.best.get_mut(usize::from(m.i2d)),
+                self.merged.get_mut(usize::from(m.i2d)),
                 self.view_points.get(usize::from(m.i3d)),
             ) else {
                 continue;
             };
-            if best.is_none_or(|(_, p)| m.probability > p) {
-                *best = Some((point, m.probability));
+            if m.probability > best.probability {
+                (best.point, best.probability) = (point, m.probability);
             }
         }
         counts.classified += accepted;
@@ -524,17 +538,13 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
 
     /// Turns the per-keypoint best matches into correspondences where each 3D point also
     /// appears once (its most probable keypoint; ties to the lower keypoint index), sorted
-    /// by keypoint, with the pose solver's inputs beside them.
-    fn merge(&mut self, map: &Map<'_>, n: usize) -> Result<()> {
+    /// by keypoint, with the pose solver's inputs beside them: the keypoint's bearing,
+    /// recomputed in `f64` from its pixel, and the map point.
+    fn merge(&mut self, map: &Map<'_>, query: &Query<'_>, n: usize) -> Result<()> {
         let mut len = 0;
-        for (keypoint, best) in self.best.iter().take(n).enumerate() {
-            if let (Some((point, probability)), Some(slot)) = (best, self.merged.get_mut(len)) {
-                *slot = Correspondence {
-                    keypoint: keypoint as u16,
-                    point: *point,
-                    probability: *probability,
-                    inlier: false,
-                };
+        for i in 0..n.min(N) {
+            if self.merged[i].probability != UNMATCHED {
+                self.merged[len] = self.merged[i];
                 len += 1;
             }
         }
@@ -557,7 +567,9 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             .iter()
             .zip(self.bearings.iter_mut().zip(self.points.iter_mut()))
         {
-            *bearing = self.query_f64[usize::from(c.keypoint)];
+            let index = usize::from(c.keypoint);
+            let pixel = query.keypoints.get(index).copied().unwrap_or([f32::NAN; 2]);
+            *bearing = keypoint_bearing(&query.camera, pixel, index)?;
             *point = map.point(c.point as usize)?.map(f64::from);
         }
         self.merged_len = kept;
@@ -600,6 +612,23 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             Err(other) => Err(other),
         }
     }
+}
+
+/// Bearing vector of a query keypoint; a non-finite pixel, or one whose `f32` bearing
+/// would not be finite, is [`Error::NonFinite`] with its index.
+fn keypoint_bearing(camera: &Camera, pixel: [f32; 2], index: usize) -> Result<[f64; 2]> {
+    let non_finite = Error::NonFinite {
+        input: Input::Keypoints,
+        index,
+    };
+    if !pixel.iter().all(|v| v.is_finite()) {
+        return Err(non_finite);
+    }
+    let b = camera.pixel_to_bearing([f64::from(pixel[0]), f64::from(pixel[1])])?;
+    if !b.iter().all(|&v| (v as f32).is_finite()) {
+        return Err(non_finite);
+    }
+    Ok(b)
 }
 
 /// Checks the settings before any work.
@@ -778,15 +807,18 @@ mod tests {
 
     #[test]
     fn workspace_is_the_matcher_the_pose_solver_and_the_merge_tables() {
-        // Per slot: query bearings f32 + f64, view bearings f32 + point index, best match
-        // (Option<(u32, f32)>), correspondence (u16, u32, f32, bool), pose solver input.
-        let merge = CAP * (2 * 4 + 2 * 8 + 2 * 4 + 4 + 12 + 12 + 2 * 8 + 3 * 8) + 8;
+        // Per slot: network input bearing (f32 x 2), view point index, correspondence
+        // (u16, u32, f32, bool), pose solver input (f64 x 2 + f64 x 3).
+        let merge = CAP * (2 * 4 + 4 + 12 + 2 * 8 + 3 * 8) + 8;
         let expected = Matcher::<CAP, f32>::BYTES + PnpWorkspace::<CAP>::BYTES + merge;
         let bytes = Localizer::<CAP, f32>::BYTES;
         assert!(
             bytes >= expected && bytes <= expected + 16,
             "{bytes} vs {expected}"
         );
+        // The memory goals: 1 MiB at 256 keypoints, 6 MiB at 1024, f16 Sinkhorn cost.
+        const { assert!(Localizer::<256, half::f16>::BYTES <= 1 << 20) };
+        const { assert!(Localizer::<1024, half::f16>::BYTES <= 6 << 20) };
     }
 
     #[test]
@@ -969,18 +1001,24 @@ mod tests {
             camera: camera(),
         };
         l.set_query(&query).expect("valid");
-        l.best.iter_mut().for_each(|b| *b = None);
-        for k in 0..CAP {
-            l.best[k] = Some((k as u32, 0.9));
+        l.clear_matches(CAP);
+        let mut claim = |keypoint: usize, point: u32, probability: f32| {
+            (l.merged[keypoint].point, l.merged[keypoint].probability) = (point, probability);
+        };
+        // Keypoint 12 has no accepted match; keypoint 3 also claims point 2 with a lower
+        // probability than keypoint 2 does; keypoint 7 claims point 9 with a higher one
+        // than keypoint 9.
+        for k in (0..CAP).filter(|&k| k != 12) {
+            claim(k, k as u32, 0.9);
         }
-        // Keypoint 3 also claims point 2 with a lower probability than keypoint 2 does;
-        // keypoint 7 claims point 9 with a higher one than keypoint 9.
-        l.best[3] = Some((2, 0.8));
-        l.best[7] = Some((9, 0.95));
-        l.merge(&map, CAP).expect("merges");
+        claim(3, 2, 0.8);
+        claim(7, 9, 0.95);
+        l.merge(&map, &query, CAP).expect("merges");
         let merged = l.correspondences().to_vec();
-        assert_eq!(merged.len(), CAP - 2);
-        assert!(!merged.iter().any(|c| c.keypoint == 3 || c.keypoint == 9));
+        assert_eq!(merged.len(), CAP - 3);
+        assert!(!merged
+            .iter()
+            .any(|c| c.keypoint == 3 || c.keypoint == 9 || c.keypoint == 12));
         assert!(merged.iter().any(|c| c.keypoint == 7 && c.point == 9));
         let mut localization = Localization::failed(Failure::NoPoseFound);
         let pose = l
@@ -990,8 +1028,8 @@ mod tests {
         assert!(pose.rotation_error_deg(&truth) < 1e-3);
         assert!(pose.translation_error(&truth) < 1e-4);
         // Keypoint 7 matched to the wrong point is the only outlier.
-        assert_eq!(localization.counts.inliers, CAP - 3);
-        assert_eq!(l.inliers().count(), CAP - 3);
+        assert_eq!(localization.counts.inliers, CAP - 4);
+        assert_eq!(l.inliers().count(), CAP - 4);
         assert!(l
             .correspondences()
             .iter()

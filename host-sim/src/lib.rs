@@ -23,3 +23,6 @@ pub mod conform;
 
 pub mod demo;
 pub mod eval;
+
+pub mod device;
+pub mod firmware_data;

@@ -27,6 +27,10 @@ enum Command {
     Demo(gomatch_sim::demo::Args),
     /// Evaluate localization on a scene with the paper's protocol (AUC, pose errors).
     Eval(gomatch_sim::eval::Args),
+    /// Drive a simulated device over its link (COBS/postcard) with synthetic queries.
+    Device(gomatch_sim::device::Args),
+    /// Write the firmware image's embedded map, query and ground truth.
+    FirmwareData(gomatch_sim::firmware_data::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -38,6 +42,8 @@ fn main() -> anyhow::Result<()> {
         Command::Conform(args) => gomatch_sim::conform::run(&args)?,
         Command::Demo(args) => gomatch_sim::demo::run(&args)?,
         Command::Eval(args) => gomatch_sim::eval::run(&args)?,
+        Command::Device(args) => gomatch_sim::device::run(&args)?,
+        Command::FirmwareData(args) => gomatch_sim::firmware_data::run(&args)?,
     }
     Ok(())
 }

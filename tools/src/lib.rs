@@ -2,3 +2,4 @@
 //! `gomatch-tools` binary is a module with an `Args` struct and a `run` function.
 
 pub mod convert;
+pub mod mem_report;

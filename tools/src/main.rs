@@ -2,6 +2,11 @@
 
 use clap::{Parser, Subcommand};
 
+/// Counts heap allocations for `mem-report` (otherwise the system allocator, unchanged).
+#[global_allocator]
+static ALLOCATOR: gomatch_tools::mem_report::CountingAllocator =
+    gomatch_tools::mem_report::CountingAllocator;
+
 /// Tools around the GoMatch core.
 #[derive(Parser)]
 #[command(version, about)]
@@ -16,12 +21,15 @@ enum Command {
     Version,
     /// Convert a float32 safetensors checkpoint (reference layout) to a model blob.
     Convert(gomatch_tools::convert::Args),
+    /// RAM, stack, heap and flash per capacity, view count and precision.
+    MemReport(gomatch_tools::mem_report::Args),
 }
 
 fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Version => println!("gomatch {}", env!("CARGO_PKG_VERSION")),
         Command::Convert(args) => gomatch_tools::convert::run(&args)?,
+        Command::MemReport(args) => gomatch_tools::mem_report::run(&args)?,
     }
     Ok(())
 }
