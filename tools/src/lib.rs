@@ -1,4 +1,8 @@
 //! Checkpoint conversion and reports around the `gomatch` core. Each subcommand of the
 //! `gomatch-tools` binary is a module with an `Args` struct and a `run` function.
 
+pub mod agreement;
+pub mod calibration;
 pub mod convert;
+pub mod quantize;
+pub mod sensitivity;
