@@ -29,10 +29,13 @@ pub struct Args {
     /// Seed of the pairs (keep it apart from the calibration seed).
     #[arg(long, default_value_t = 2000)]
     pub seed: u64,
+    /// Print the sizes and agreement of every pair.
+    #[arg(long)]
+    pub verbose: bool,
 }
 
 /// Agreement statistics over the pairs.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Summary {
     /// Mean per-pair agreement.
     pub mean: f64,
@@ -40,6 +43,8 @@ pub struct Summary {
     pub min: f64,
     /// `sum |A ∩ R| / sum |A ∪ R|` over all pairs.
     pub pooled: f64,
+    /// Per pair: query keypoints, database points, agreement.
+    pub per_pair: Vec<(usize, usize, f64)>,
 }
 
 /// Runs the command.
@@ -47,6 +52,11 @@ pub fn run(args: &Args) -> Result<()> {
     let read = |p: &PathBuf| std::fs::read(p).with_context(|| format!("reading {}", p.display()));
     let (model, reference) = (read(&args.model)?, read(&args.reference)?);
     let s = agreement(&model, &reference, &synthetic_pairs(args.pairs, args.seed))?;
+    if args.verbose {
+        for (n2, n3, a) in &s.per_pair {
+            println!("pair {n2} x {n3}: agreement {a:.4}");
+        }
+    }
     println!(
         "{} vs {} on {} pairs (seed {}): mean {:.4} min {:.4} pooled {:.4} ({} bytes)",
         args.model.display(),
@@ -109,7 +119,8 @@ impl<'p> ReferenceMatches<'p> {
     pub fn agreement(&self, model: &[u8]) -> Result<Summary> {
         let ours = match_sets(model, self.pairs)?;
         let (mut sum, mut min, mut common, mut union) = (0.0, 1.0f64, 0usize, 0usize);
-        for (a, r) in ours.iter().zip(&self.sets) {
+        let mut per_pair = Vec::with_capacity(ours.len());
+        for ((a, r), p) in ours.iter().zip(&self.sets).zip(self.pairs) {
             let both = a.intersection(r).count();
             let either = a.len() + r.len() - both;
             let value = if either == 0 {
@@ -117,6 +128,7 @@ impl<'p> ReferenceMatches<'p> {
             } else {
                 both as f64 / either as f64
             };
+            per_pair.push((p.query.len(), p.db.len(), value));
             sum += value;
             min = min.min(value);
             common += both;
@@ -130,6 +142,7 @@ impl<'p> ReferenceMatches<'p> {
             } else {
                 common as f64 / union as f64
             },
+            per_pair,
         })
     }
 }

@@ -10,8 +10,8 @@
 //! constant over the set. The two halves of an EdgeConv layer act together on the edge
 //! `[x_i; x_j]`, so they share one joint moment matrix.
 
-use gomatch::weights::{tensor_count, tensor_spec, ModelConfig};
-use gomatch::{Matcher, Model};
+use gomatch::weights::ModelConfig;
+use gomatch::{Matcher, Model, Precision};
 use rand::seq::SliceRandom;
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
@@ -19,6 +19,7 @@ use rand_pcg::Pcg64Mcg;
 use std::sync::Mutex;
 
 use crate::convert::FloatLinear;
+use crate::quantize::{self, Int8Tensor, ScaleSearch};
 
 /// One query-view pair of bearing sets.
 #[derive(Debug, Clone)]
@@ -102,121 +103,109 @@ fn random_rotation(rng: &mut Pcg64Mcg, max_angle: f64) -> [[f64; 3]; 3] {
     ]
 }
 
-/// Tensors that act together on one input: the centre and neighbour halves of an
-/// EdgeConv layer on the edge `[x_i; x_j]`, otherwise a single tensor. Their columns
-/// concatenate, in order, to the columns of the moment matrix.
+/// Second moments of one layer group's inputs over the calibration sets: `h = sum q q^T`
+/// of the quantised-path inputs and `g = sum f q^T` with the float-path inputs.
 #[derive(Debug, Clone)]
-pub struct LayerGroup {
-    /// Blob indices of the tensors.
-    pub tensors: Vec<usize>,
-    /// Sum of the tensors' input counts.
-    pub dim: usize,
-    /// Sum over calibration samples of `z z^T` (`dim x dim`, row-major).
-    pub moments: Vec<f64>,
-    /// Number of samples summed.
-    pub samples: f64,
+struct Moments {
+    dim: usize,
+    h: Vec<f64>,
+    g: Vec<f64>,
+    /// Whether some inputs had a quantised path apart from the float one.
+    apart: bool,
 }
 
-impl LayerGroup {
-    /// The mean second-moment matrix `sum z z^T / samples`.
-    pub fn hessian(&self) -> Vec<f64> {
-        let scale = 1.0 / self.samples.max(1.0);
-        self.moments.iter().map(|m| m * scale).collect()
+impl Moments {
+    fn new(dim: usize) -> Self {
+        Moments {
+            dim,
+            h: vec![0.0; dim * dim],
+            g: vec![0.0; dim * dim],
+            apart: false,
+        }
     }
-}
 
-/// Input moments of every layer of a model.
-#[derive(Debug, Clone)]
-pub struct Calibration {
-    /// The groups, in blob order of their first tensor.
-    pub groups: Vec<LayerGroup>,
-    group_of: Vec<usize>,
-}
-
-impl Calibration {
-    /// Empty moments for the layout of `config`.
-    pub fn new(config: &ModelConfig) -> Self {
-        let mut groups: Vec<LayerGroup> = Vec::new();
-        let mut group_of = Vec::new();
-        for index in 0..tensor_count(config) {
-            let spec = tensor_spec(config, index).expect("index within the layout");
-            let joins_previous = spec.name.role.ends_with("_neighbour");
-            if joins_previous {
-                let group = groups.last_mut().expect("a centre tensor precedes");
-                group.tensors.push(index);
-                group.dim += spec.cols;
-            } else {
-                groups.push(LayerGroup {
-                    tensors: vec![index],
-                    dim: spec.cols,
-                    moments: Vec::new(),
-                    samples: 0.0,
-                });
+    /// Adds the inputs of one set, centred over the set if `centred`.
+    fn add(&mut self, x: &Both, centred: bool) {
+        let centre = |f: &Features| if centred { f.centred() } else { f.clone() };
+        let f = centre(&x.f);
+        match &x.q {
+            Some(q) => {
+                self.apart = true;
+                let q = centre(q);
+                add_cross(&mut self.h, self.dim, 0, 0, &q, &q, None);
+                add_cross(&mut self.g, self.dim, 0, 0, &f, &q, None);
             }
-            group_of.push(groups.len() - 1);
+            None => add_cross(&mut self.h, self.dim, 0, 0, &f, &f, None),
         }
-        for g in &mut groups {
-            g.moments = vec![0.0; g.dim * g.dim];
-        }
-        Calibration { groups, group_of }
     }
 
-    /// The group holding tensor `index`.
-    pub fn group_of(&self, index: usize) -> &LayerGroup {
-        &self.groups[self.group_of[index]]
-    }
-
-    /// Adds the inputs `x` of the single tensor `index`, centred per set if `centred`.
-    fn add(&mut self, index: usize, x: &Features, centred: bool) {
-        let x = if centred { x.centred() } else { x.clone() };
-        let g = &mut self.groups[self.group_of[index]];
-        add_cross(&mut g.moments, g.dim, 0, 0, &x, &x, None);
-        g.samples += x.n as f64;
-    }
-
-    /// Adds the centred edge inputs `[x_i; x_j]` of the EdgeConv group of tensor `centre`
-    /// over the `k`-neighbour `graph`, without forming the edges:
-    /// `sum_e [x_i; x_j][x_i; x_j]^T` has the blocks `k X X^T`, `sum_i x_i s_i^T` with
-    /// `s_i` the sum of `i`'s neighbours, and `sum_j indegree_j x_j x_j^T`.
-    fn add_edges(&mut self, centre: usize, x: &Features, graph: &[Vec<usize>]) {
-        let n = x.n;
-        let k = graph.first().map_or(0, Vec::len);
-        if k == 0 {
-            return;
-        }
-        let mut indegree = vec![0.0f64; n];
-        for neighbours in graph {
-            for &j in neighbours {
-                indegree[j] += 1.0;
+    /// Adds the edge inputs `[x_i; x_j]` of one set over its neighbour `graph`, centred
+    /// over the edges (an instance norm over the edges follows).
+    fn add_edges(&mut self, x: &Both, graph: &[Vec<usize>]) {
+        match &x.q {
+            Some(q) => {
+                self.apart = true;
+                edge_moments(&mut self.h, self.dim, q, q, graph);
+                edge_moments(&mut self.g, self.dim, &x.f, q, graph);
             }
+            None => edge_moments(&mut self.h, self.dim, &x.f, &x.f, graph),
         }
-        let edges = (n * k) as f64;
-        // Centre on the edge means of both halves.
-        let mut centred_i = x.clone();
-        let mut centred_j = x.clone();
+    }
+
+    /// `g`, which equals `h` when no input had a separate quantised path.
+    fn cross(&self) -> &[f64] {
+        if self.apart {
+            &self.g
+        } else {
+            &self.h
+        }
+    }
+}
+
+/// `m += sum_e (a_e - mean a)(b_e - mean b)^T` over the edges `e = (i, j)` of `graph`,
+/// with `a_e = [a_i; a_j]` (likewise `b_e`), without forming the edges: with every point
+/// having `k` neighbours the blocks are `k sum_i a_i b_i^T`, `sum_i a_i s(b)_i^T`,
+/// `sum_i s(a)_i b_i^T` and `sum_j indegree_j a_j b_j^T`, `s(x)_i` the sum of `x` over
+/// the neighbours of `i`, each half centred on its edge mean.
+fn edge_moments(m: &mut [f64], dim: usize, a: &Features, b: &Features, graph: &[Vec<usize>]) {
+    let n = a.n;
+    let k = graph.first().map_or(0, Vec::len);
+    if k == 0 {
+        return;
+    }
+    let mut indegree = vec![0.0f64; n];
+    for neighbours in graph {
+        for &j in neighbours {
+            indegree[j] += 1.0;
+        }
+    }
+    let edges = (n * k) as f64;
+    let halves = |x: &Features| -> (Features, Features, Features) {
+        let mut centre = x.clone();
+        let mut neighbour = x.clone();
         for c in 0..x.channels {
             let row = x.row(c);
             let mean_i = row.iter().sum::<f64>() / n as f64;
             let mean_j = row.iter().zip(&indegree).map(|(v, d)| v * d).sum::<f64>() / edges;
-            centred_i.row_mut(c).iter_mut().for_each(|v| *v -= mean_i);
-            centred_j.row_mut(c).iter_mut().for_each(|v| *v -= mean_j);
+            centre.row_mut(c).iter_mut().for_each(|v| *v -= mean_i);
+            neighbour.row_mut(c).iter_mut().for_each(|v| *v -= mean_j);
         }
         let mut sums = Features::zeros(x.channels, n);
         for c in 0..x.channels {
-            let src = centred_j.row(c);
-            for (i, neighbours) in graph.iter().enumerate() {
-                sums.row_mut(c)[i] = neighbours.iter().map(|&j| src[j]).sum();
+            let src = neighbour.row(c);
+            for (i, nb) in graph.iter().enumerate() {
+                sums.row_mut(c)[i] = nb.iter().map(|&j| src[j]).sum();
             }
         }
-        let d = x.channels;
-        let g = &mut self.groups[self.group_of[centre]];
-        let weights_i = vec![k as f64; n];
-        add_cross(&mut g.moments, g.dim, 0, 0, &centred_i, &centred_i, Some(&weights_i));
-        add_cross(&mut g.moments, g.dim, 0, d, &centred_i, &sums, None);
-        add_cross(&mut g.moments, g.dim, d, 0, &sums, &centred_i, None);
-        add_cross(&mut g.moments, g.dim, d, d, &centred_j, &centred_j, Some(&indegree));
-        g.samples += edges;
-    }
+        (centre, neighbour, sums)
+    };
+    let (ai, aj, sa) = halves(a);
+    let (bi, bj, sb) = halves(b);
+    let d = a.channels;
+    add_cross(m, dim, 0, 0, &ai, &bi, Some(&vec![k as f64; n]));
+    add_cross(m, dim, 0, d, &ai, &sb, None);
+    add_cross(m, dim, d, 0, &sa, &bi, None);
+    add_cross(m, dim, d, d, &aj, &bj, Some(&indegree));
 }
 
 /// `m[r0 + a][c0 + b] += sum_i w_i a_i b_i` over the points of two channel-major sets.
@@ -386,21 +375,134 @@ fn linear(w: &FloatLinear, x: &Features) -> Features {
     y
 }
 
-/// The converted tensors of a model by role (blob order of `gomatch::weights`).
-struct Layers<'t> {
-    config: ModelConfig,
-    tensors: &'t [FloatLinear],
+/// Float-path and quantised-path features of one set (`q` is `None` while both agree).
+#[derive(Debug, Clone)]
+struct Both {
+    f: Features,
+    q: Option<Features>,
 }
 
-impl Layers<'_> {
+impl Both {
+    fn exact(f: Features) -> Self {
+        Both { f, q: None }
+    }
+
+    fn q(&self) -> &Features {
+        self.q.as_ref().unwrap_or(&self.f)
+    }
+
+    fn map(self, op: impl Fn(Features) -> Features) -> Both {
+        Both {
+            f: op(self.f),
+            q: self.q.map(&op),
+        }
+    }
+
+    /// `op(self, other)` on both paths.
+    fn update(&mut self, other: &Both, op: impl Fn(&mut Features, &Features)) {
+        if other.q.is_some() && self.q.is_none() {
+            self.q = Some(self.f.clone());
+        }
+        op(&mut self.f, &other.f);
+        if let Some(q) = &mut self.q {
+            op(q, other.q());
+        }
+    }
+
+    fn concat(parts: &[&Both]) -> Both {
+        let f: Vec<&Features> = parts.iter().map(|p| &p.f).collect();
+        let q: Vec<&Features> = parts.iter().map(|p| p.q()).collect();
+        Both {
+            f: Features::concat(&f),
+            q: parts
+                .iter()
+                .any(|p| p.q.is_some())
+                .then(|| Features::concat(&q)),
+        }
+    }
+
+    fn gather(&self, idx: &[usize]) -> Both {
+        Both {
+            f: self.f.gather(idx),
+            q: self.q.as_ref().map(|q| q.gather(idx)),
+        }
+    }
+}
+
+/// How int8 tensors are fitted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FitOptions {
+    /// Scale of each row.
+    pub scale: ScaleSearch,
+    /// Whether each layer sees the inputs of the already quantised layers before it and
+    /// aims at the float model's output (error-correcting), instead of the float inputs.
+    pub correct: bool,
+}
+
+/// Rounds every tensor whose precision is int8 with GPTQ on the calibration `pairs`,
+/// layer by layer in forward order; `None` for the others. `f32_blob` (the f32
+/// conversion of `tensors`) gives the classifier's matches through `gomatch::Matcher`.
+///
+/// With `correct`, the f64 forward pass runs twice in lockstep: the float model and the
+/// model quantised so far. A layer with float inputs `X` and quantised-path inputs `Xq`
+/// gets the least-squares target `W~ = W + (W X Xq^T - W Hq)(Hq + lambda I)^-1` of the
+/// float output from the quantised inputs (`Hq = Xq Xq^T`), which GPTQ then rounds with
+/// `Hq`: the error of the layers before is compensated where the inputs allow.
+pub fn fit_int8(
+    config: &ModelConfig,
+    tensors: &[FloatLinear],
+    precisions: &[Precision],
+    f32_blob: &[u8],
+    pairs: &[Pair],
+    options: FitOptions,
+) -> anyhow::Result<Vec<Option<Int8Tensor>>> {
+    static MATCHER: Mutex<Matcher<1024, f32>> = Mutex::new(Matcher::new());
+    let model = Model::from_bytes(f32_blob).map_err(|e| anyhow::anyhow!("f32 blob: {e}"))?;
+    let mut matches = Vec::with_capacity(pairs.len());
+    {
+        let mut matcher = MATCHER
+            .lock()
+            .map_err(|_| anyhow::anyhow!("matcher lock poisoned"))?;
+        for pair in pairs {
+            let set = matcher
+                .match_pair(&model, &pair.query, &pair.db)
+                .map_err(|e| anyhow::anyhow!("calibration pair: {e}"))?;
+            let list: Vec<(usize, usize)> = set
+                .as_slice()
+                .iter()
+                .map(|m| (usize::from(m.i2d), usize::from(m.i3d)))
+                .collect();
+            matches.push(list);
+        }
+    }
+    let mut engine = Engine {
+        config: *config,
+        float: tensors,
+        effective: tensors.to_vec(),
+        precisions,
+        options,
+        int8: vec![None; tensors.len()],
+    };
+    engine.run(pairs, &matches)?;
+    Ok(engine.int8)
+}
+
+type Graph = Vec<Vec<usize>>;
+
+/// The two forward paths and the fitted tensors.
+struct Engine<'t> {
+    config: ModelConfig,
+    float: &'t [FloatLinear],
+    /// Weights of the quantised path: dequantised int8, f16-rounded or f32.
+    effective: Vec<FloatLinear>,
+    precisions: &'t [Precision],
+    options: FitOptions,
+    int8: Vec<Option<Int8Tensor>>,
+}
+
+impl Engine<'_> {
     fn encoder_blocks(&self) -> usize {
         usize::from(self.config.encoder_blocks)
-    }
-    fn encoder_input(&self) -> usize {
-        0
-    }
-    fn encoder_fused(&self, b: usize) -> usize {
-        1 + 2 * b
     }
     fn self_base(&self, layer: usize) -> usize {
         1 + 2 * self.encoder_blocks() + 5 * layer
@@ -411,92 +513,393 @@ impl Layers<'_> {
     fn classifier_input(&self) -> usize {
         self.cross_base() + 6
     }
-}
 
-/// Accumulates the input moments of every layer over `pairs`, running the float model
-/// `tensors` (blob order) in f64. The classifier sees the mutual matches of the
-/// `gomatch::Matcher` on the f32 blob `f32_blob` of the same tensors.
-pub fn calibrate(
-    config: &ModelConfig,
-    tensors: &[FloatLinear],
-    f32_blob: &[u8],
-    pairs: &[Pair],
-) -> anyhow::Result<Calibration> {
-    static MATCHER: Mutex<Matcher<1024, f32>> = Mutex::new(Matcher::new());
-    let model = Model::from_bytes(f32_blob).map_err(|e| anyhow::anyhow!("f32 blob: {e}"))?;
-    let layers = Layers {
-        config: *config,
-        tensors,
-    };
-    let mut stats = Calibration::new(config);
-    let mut matcher = MATCHER
-        .lock()
-        .map_err(|_| anyhow::anyhow!("matcher lock poisoned"))?;
-    for pair in pairs {
-        let matches: Vec<(usize, usize)> = matcher
-            .match_pair(&model, &pair.query, &pair.db)
-            .map_err(|e| anyhow::anyhow!("calibration pair: {e}"))?
-            .as_slice()
+    /// Layer `index` on both paths.
+    fn apply(&self, index: usize, x: &Both) -> Both {
+        Both {
+            f: linear(&self.float[index], &x.f),
+            q: self
+                .options
+                .correct
+                .then(|| linear(&self.effective[index], x.q())),
+        }
+    }
+
+    /// Fits the single tensor `index` on the inputs `xs`.
+    fn fit(&mut self, index: usize, xs: &[&Both], centred: bool) -> anyhow::Result<()> {
+        let mut m = Moments::new(self.float[index].cols);
+        for x in xs {
+            m.add(x, centred);
+        }
+        self.fit_group(&[index], &m)
+    }
+
+    /// Fits the EdgeConv pair `centre`, `centre + 1` on the edges of `xs`.
+    fn fit_edges(&mut self, centre: usize, xs: &[Both], graphs: &[Graph]) -> anyhow::Result<()> {
+        let mut m = Moments::new(self.float[centre].cols + self.float[centre + 1].cols);
+        for (x, g) in xs.iter().zip(graphs) {
+            m.add_edges(x, g);
+        }
+        self.fit_group(&[centre, centre + 1], &m)
+    }
+
+    /// Rounds the int8 members of a group whose columns concatenate to the moments'.
+    fn fit_group(&mut self, group: &[usize], m: &Moments) -> anyhow::Result<()> {
+        let mut int8_columns = Vec::new();
+        let mut members = Vec::new();
+        let mut at = 0;
+        for &index in group {
+            let t = &self.float[index];
+            match self.precisions[index] {
+                Precision::Int8 => {
+                    int8_columns.extend(at..at + t.cols);
+                    members.push(index);
+                }
+                Precision::F16 => self.effective[index] = rounded_f16(t),
+                Precision::F32 => {}
+            }
+            at += t.cols;
+        }
+        if members.is_empty() {
+            return Ok(());
+        }
+        let dim = m.dim;
+        let sub = |full: &[f64]| -> Vec<f64> {
+            int8_columns
+                .iter()
+                .flat_map(|&a| int8_columns.iter().map(move |&b| full[a * dim + b]))
+                .collect()
+        };
+        let h = sub(&m.h);
+        let mut targets: Vec<FloatLinear> = members.iter().map(|&i| self.float[i].clone()).collect();
+        if self.options.correct {
+            let solver = Ridge::new(&h, int8_columns.len())?;
+            let g = m.cross();
+            let rows = self.float[group[0]].rows;
+            for r in 0..rows {
+                let row = |ts: &[FloatLinear]| -> Vec<f64> {
+                    group
+                        .iter()
+                        .flat_map(|&i| {
+                            let t = &ts[i];
+                            t.weights[r * t.cols..(r + 1) * t.cols].iter().map(|&w| f64::from(w))
+                        })
+                        .collect()
+                };
+                let (w, w_eff) = (row(self.float), row(&self.effective));
+                // rhs = (G^T w - H w_eff) restricted to the int8 columns (w_eff keeps the
+                // f16/f32 members' stored values and the float int8 weights).
+                let mut w_eff = w_eff;
+                for &a in &int8_columns {
+                    w_eff[a] = w[a];
+                }
+                let rhs: Vec<f64> = int8_columns
+                    .iter()
+                    .map(|&a| {
+                        (0..dim)
+                            .map(|b| g[b * dim + a] * w[b] - m.h[a * dim + b] * w_eff[b])
+                            .sum()
+                    })
+                    .collect();
+                let delta = solver.solve(&rhs);
+                let mut k = 0;
+                for t in &mut targets {
+                    for c in 0..t.cols {
+                        let v = &mut t.weights[r * t.cols + c];
+                        *v = (f64::from(*v) + delta[k]) as f32;
+                        k += 1;
+                    }
+                }
+            }
+        }
+        let refs: Vec<&FloatLinear> = targets.iter().collect();
+        let rounded = quantize::gptq(&refs, &h, self.options.scale)?;
+        for (index, q) in members.into_iter().zip(rounded) {
+            self.effective[index] = dequantized(&self.float[index], &q);
+            self.int8[index] = Some(q);
+        }
+        Ok(())
+    }
+
+    fn run(&mut self, pairs: &[Pair], matches: &[Vec<(usize, usize)>]) -> anyhow::Result<()> {
+        let knn = usize::from(self.config.knn);
+        let sets: Vec<&[[f32; 2]]> = pairs
             .iter()
-            .map(|m| (usize::from(m.i2d), usize::from(m.i3d)))
+            .map(|p| &p.query[..])
+            .chain(pairs.iter().map(|p| &p.db[..]))
             .collect();
-        forward(&layers, pair, &matches, &mut stats);
+        let graphs: Vec<Graph> = sets.iter().map(|s| knn_graph(s, knn)).collect();
+        let x = self.encode(&sets)?;
+        let x = self.self_layer(0, &x, &graphs)?;
+        let (x2, x3) = x.split_at(pairs.len());
+        let (x2, x3) = self.cross_layer(x2, x3)?;
+        let x: Vec<Both> = x2.into_iter().chain(x3).collect();
+        let x = self.self_layer(1, &x, &graphs)?;
+        let x: Vec<Both> = x.into_iter().map(|b| b.map(l2_normalize)).collect();
+        let (d2, d3) = x.split_at(pairs.len());
+        self.classifier(d2, d3, matches)
     }
-    Ok(stats)
+
+    fn encode(&mut self, sets: &[&[[f32; 2]]]) -> anyhow::Result<Vec<Both>> {
+        let coords: Vec<Both> = sets
+            .iter()
+            .map(|points| {
+                let n = points.len();
+                let mut c = Features::zeros(2, n);
+                for (i, p) in points.iter().enumerate() {
+                    c.x[i] = f64::from(p[0]);
+                    c.x[n + i] = f64::from(p[1]);
+                }
+                Both::exact(c)
+            })
+            .collect();
+        self.fit(0, &coords.iter().collect::<Vec<_>>(), false)?;
+        let x = coords.iter().map(|c| self.apply(0, c)).collect();
+        self.residual_blocks(x, 1, self.encoder_blocks())
+    }
+
+    /// `x += ReLU(IN(W2 IN(W1 W0 x)))` per block; tensors `first`, `first + 1`, ...
+    fn residual_blocks(
+        &mut self,
+        mut x: Vec<Both>,
+        first: usize,
+        blocks: usize,
+    ) -> anyhow::Result<Vec<Both>> {
+        for b in 0..blocks {
+            let (fused, conv2) = (first + 2 * b, first + 2 * b + 1);
+            self.fit(fused, &x.iter().collect::<Vec<_>>(), true)?;
+            let h: Vec<Both> = x
+                .iter()
+                .map(|x| self.apply(fused, x).map(Features::instance_norm))
+                .collect();
+            self.fit(conv2, &h.iter().collect::<Vec<_>>(), true)?;
+            for (x, h) in x.iter_mut().zip(&h) {
+                let z = self.apply(conv2, h).map(|z| z.instance_norm().map(|v| v.max(0.0)));
+                x.update(&z, |x, z| x.x.iter_mut().zip(&z.x).for_each(|(v, z)| *v += z));
+            }
+        }
+        Ok(x)
+    }
+
+    fn self_layer(
+        &mut self,
+        layer: usize,
+        x: &[Both],
+        graphs: &[Graph],
+    ) -> anyhow::Result<Vec<Both>> {
+        let base = self.self_base(layer);
+        let x1 = self.edge_conv(base, x, graphs)?;
+        let x2 = self.edge_conv(base + 2, &x1, graphs)?;
+        let cat: Vec<Both> = x
+            .iter()
+            .zip(&x1)
+            .zip(&x2)
+            .map(|((a, b), c)| Both::concat(&[a, b, c]))
+            .collect();
+        self.fit(base + 4, &cat.iter().collect::<Vec<_>>(), true)?;
+        Ok(cat
+            .iter()
+            .map(|c| {
+                self.apply(base + 4, c)
+                    .map(|y| y.instance_norm().map(leaky_relu))
+            })
+            .collect())
+    }
+
+    fn edge_conv(
+        &mut self,
+        centre: usize,
+        x: &[Both],
+        graphs: &[Graph],
+    ) -> anyhow::Result<Vec<Both>> {
+        self.fit_edges(centre, x, graphs)?;
+        Ok(x.iter()
+            .zip(graphs)
+            .map(|(x, g)| {
+                let (a, b) = (self.apply(centre, x), self.apply(centre + 1, x));
+                Both {
+                    f: finish_edges(&a.f, &b.f, g),
+                    q: a.q.as_ref().map(|aq| finish_edges(aq, b.q(), g)),
+                }
+            })
+            .collect())
+    }
+
+    /// The cross layer on both directions (2D from 3D, then 3D from the updated 2D). Its
+    /// tensors are fitted on the inputs of both calls; the second call's sources on the
+    /// quantised path are the first call's outputs with the float cross layer.
+    fn cross_layer(
+        &mut self,
+        x2: &[Both],
+        x3: &[Both],
+    ) -> anyhow::Result<(Vec<Both>, Vec<Both>)> {
+        let base = self.cross_base();
+        let heads = usize::from(self.config.heads);
+        let float = &self.float[base..base + 6];
+        let first: Vec<Both> = x2
+            .iter()
+            .zip(x3)
+            .map(|(a, b)| Both {
+                f: cross(float, heads, &a.f, &b.f),
+                q: (a.q.is_some() || b.q.is_some()).then(|| cross(float, heads, a.q(), b.q())),
+            })
+            .collect();
+        let targets: Vec<&Both> = x2.iter().chain(x3).collect();
+        let sources: Vec<&Both> = x3.iter().chain(&first).collect();
+        self.fit(base, &targets, false)?;
+        self.fit(base + 1, &sources, false)?;
+        self.fit(base + 2, &sources, false)?;
+        let messages: Vec<Both> = targets
+            .iter()
+            .zip(&sources)
+            .map(|(t, s)| {
+                let (q, k, v) = (
+                    self.apply(base, t),
+                    self.apply(base + 1, s),
+                    self.apply(base + 2, s),
+                );
+                Both {
+                    f: attention(heads, &q.f, &k.f, &v.f),
+                    q: q.q.as_ref().map(|qq| attention(heads, qq, k.q(), v.q())),
+                }
+            })
+            .collect();
+        self.fit(base + 3, &messages.iter().collect::<Vec<_>>(), false)?;
+        let cat: Vec<Both> = targets
+            .iter()
+            .zip(&messages)
+            .map(|(t, m)| Both::concat(&[t, &self.apply(base + 3, m)]))
+            .collect();
+        self.fit(base + 4, &cat.iter().collect::<Vec<_>>(), true)?;
+        let hidden: Vec<Both> = cat
+            .iter()
+            .map(|c| {
+                self.apply(base + 4, c)
+                    .map(|h| h.instance_norm().map(|v| v.max(0.0)))
+            })
+            .collect();
+        self.fit(base + 5, &hidden.iter().collect::<Vec<_>>(), false)?;
+        let both = |x: &Both, src: &Both| -> Both {
+            Both {
+                f: cross(&self.float[base..base + 6], heads, &x.f, &src.f),
+                q: self
+                    .options
+                    .correct
+                    .then(|| cross(&self.effective[base..base + 6], heads, x.q(), src.q())),
+            }
+        };
+        let new2: Vec<Both> = x2.iter().zip(x3).map(|(a, b)| both(a, b)).collect();
+        let new3: Vec<Both> = x3.iter().zip(&new2).map(|(a, b)| both(a, b)).collect();
+        Ok((new2, new3))
+    }
+
+    /// The match classifier on `[f2d; f3d]` of each match (a single match twice).
+    fn classifier(
+        &mut self,
+        d2: &[Both],
+        d3: &[Both],
+        matches: &[Vec<(usize, usize)>],
+    ) -> anyhow::Result<()> {
+        let inputs: Vec<Both> = d2
+            .iter()
+            .zip(d3)
+            .zip(matches)
+            .filter(|(_, m)| !m.is_empty())
+            .map(|((a, b), m)| {
+                let mut list = m.clone();
+                if list.len() == 1 {
+                    list.push(list[0]);
+                }
+                let i2: Vec<usize> = list.iter().map(|m| m.0).collect();
+                let i3: Vec<usize> = list.iter().map(|m| m.1).collect();
+                Both::concat(&[&a.gather(&i2), &b.gather(&i3)])
+            })
+            .collect();
+        let first = self.classifier_input();
+        self.fit(first, &inputs.iter().collect::<Vec<_>>(), false)?;
+        let x = inputs.iter().map(|x| self.apply(first, x)).collect();
+        let blocks = usize::from(self.config.classifier_blocks);
+        let x = self.residual_blocks(x, first + 1, blocks)?;
+        self.fit(first + 1 + 2 * blocks, &x.iter().collect::<Vec<_>>(), false)
+    }
 }
 
-/// One pair through the float model, recording every layer's inputs.
-fn forward(l: &Layers<'_>, pair: &Pair, matches: &[(usize, usize)], stats: &mut Calibration) {
-    let knn = usize::from(l.config.knn);
-    let mut x2 = encode(l, &pair.query, stats);
-    let mut x3 = encode(l, &pair.db, stats);
-    let g2 = knn_graph(&pair.query, knn);
-    let g3 = knn_graph(&pair.db, knn);
-    x2 = self_layer(l, 0, &x2, &g2, stats);
-    x3 = self_layer(l, 0, &x3, &g3, stats);
-    x2 = cross_layer(l, &x2, &x3, stats);
-    x3 = cross_layer(l, &x3, &x2, stats);
-    x2 = self_layer(l, 1, &x2, &g2, stats);
-    x3 = self_layer(l, 1, &x3, &g3, stats);
-    let (d2, d3) = (l2_normalize(x2), l2_normalize(x3));
-    classifier(l, &d2, &d3, matches, stats);
+/// Solves `(H + lambda I) x = b` for the dampened moments (see [`quantize::DAMPENING`]).
+struct Ridge {
+    dim: usize,
+    lower: Vec<f64>,
 }
 
-fn encode(l: &Layers<'_>, points: &[[f32; 2]], stats: &mut Calibration) -> Features {
-    let n = points.len();
-    let mut coords = Features::zeros(2, n);
-    for (i, p) in points.iter().enumerate() {
-        coords.x[i] = f64::from(p[0]);
-        coords.x[n + i] = f64::from(p[1]);
+impl Ridge {
+    fn new(h: &[f64], dim: usize) -> anyhow::Result<Self> {
+        Ok(Ridge {
+            dim,
+            lower: quantize::cholesky(&quantize::dampened(h.to_vec(), dim), dim)?,
+        })
     }
-    stats.add(l.encoder_input(), &coords, false);
-    let x = linear(&l.tensors[l.encoder_input()], &coords);
-    residual_blocks(l, x, l.encoder_fused(0), l.encoder_blocks(), stats)
+
+    fn solve(&self, b: &[f64]) -> Vec<f64> {
+        let (n, l) = (self.dim, &self.lower);
+        let mut y = vec![0.0; n];
+        for r in 0..n {
+            let s: f64 = (0..r).map(|k| l[r * n + k] * y[k]).sum();
+            y[r] = (b[r] - s) / l[r * n + r];
+        }
+        let mut x = vec![0.0; n];
+        for r in (0..n).rev() {
+            let s: f64 = (r + 1..n).map(|k| l[k * n + r] * x[k]).sum();
+            x[r] = (y[r] - s) / l[r * n + r];
+        }
+        x
+    }
 }
 
-/// `x += ReLU(IN(W2 IN(W1 W0 x)))` per block; tensors `first`, `first + 1`, ...
-fn residual_blocks(
-    l: &Layers<'_>,
-    mut x: Features,
-    first: usize,
-    blocks: usize,
-    stats: &mut Calibration,
-) -> Features {
-    for b in 0..blocks {
-        let (fused, conv2) = (first + 2 * b, first + 2 * b + 1);
-        stats.add(fused, &x, true);
-        let h = linear(&l.tensors[fused], &x).instance_norm();
-        stats.add(conv2, &h, true);
-        let z = linear(&l.tensors[conv2], &h).instance_norm();
-        x.x.iter_mut()
-            .zip(&z.x)
-            .for_each(|(v, &z)| *v += z.max(0.0));
+/// The weights an f16 tensor holds.
+fn rounded_f16(t: &FloatLinear) -> FloatLinear {
+    FloatLinear {
+        weights: t
+            .weights
+            .iter()
+            .map(|&w| half::f16::from_f32(w).to_f32())
+            .collect(),
+        ..t.clone()
     }
-    x
+}
+
+/// The weights an int8 tensor holds, `scale * level`.
+fn dequantized(t: &FloatLinear, q: &Int8Tensor) -> FloatLinear {
+    FloatLinear {
+        weights: q
+            .levels
+            .iter()
+            .enumerate()
+            .map(|(i, &l)| f32::from(l) * q.scales[i / t.cols])
+            .collect(),
+        ..t.clone()
+    }
+}
+
+/// `LeakyReLU((a_i + max_j b_j - mean) / std)` per channel, the statistics over all edges
+/// `a_i + b_j` (EdgeConv with instance norm, then the max over neighbours).
+fn finish_edges(a: &Features, b: &Features, graph: &[Vec<usize>]) -> Features {
+    let mut out = Features::zeros(a.channels, a.n);
+    for c in 0..a.channels {
+        let (ac, bc) = (a.row(c), b.row(c));
+        let edges = graph
+            .iter()
+            .enumerate()
+            .flat_map(|(i, nb)| nb.iter().map(move |&j| ac[i] + bc[j]));
+        let (mean, inv_std) = normalizer(edges);
+        for (i, nb) in graph.iter().enumerate() {
+            let best = nb.iter().map(|&j| bc[j]).fold(f64::NEG_INFINITY, f64::max);
+            out.row_mut(c)[i] = leaky_relu((ac[i] + best - mean) * inv_std);
+        }
+    }
+    out
 }
 
 /// The `min(knn, n - 1)` nearest other points of each point (ties to the lower index).
-fn knn_graph(points: &[[f32; 2]], knn: usize) -> Vec<Vec<usize>> {
+fn knn_graph(points: &[[f32; 2]], knn: usize) -> Graph {
     let k = knn.min(points.len().saturating_sub(1));
     points
         .iter()
@@ -518,77 +921,38 @@ fn knn_graph(points: &[[f32; 2]], knn: usize) -> Vec<Vec<usize>> {
         .collect()
 }
 
-fn self_layer(
-    l: &Layers<'_>,
-    layer: usize,
-    x: &Features,
-    graph: &[Vec<usize>],
-    stats: &mut Calibration,
-) -> Features {
-    let base = l.self_base(layer);
-    let x1 = edge_conv(l, base, x, graph, stats);
-    let x2 = edge_conv(l, base + 2, &x1, graph, stats);
-    let cat = Features::concat(&[x, &x1, &x2]);
-    stats.add(base + 4, &cat, true);
-    linear(&l.tensors[base + 4], &cat)
+/// `x + MLP([x, merge(attention(q(x), k(src), v(src)))])` (supp. eq. 6-8) with the six
+/// cross tensors `t` (query, key, value, merge, mlp_hidden, mlp_out).
+fn cross(t: &[FloatLinear], heads: usize, x: &Features, src: &Features) -> Features {
+    let message = attention(
+        heads,
+        &linear(&t[0], x),
+        &linear(&t[1], src),
+        &linear(&t[2], src),
+    );
+    let merged = linear(&t[3], &message);
+    let hidden = linear(&t[4], &Features::concat(&[x, &merged]))
         .instance_norm()
-        .map(leaky_relu)
-}
-
-/// `max_j LeakyReLU(IN(Wc x_i + Wn x_j))` with the statistics over all edges.
-fn edge_conv(
-    l: &Layers<'_>,
-    centre: usize,
-    x: &Features,
-    graph: &[Vec<usize>],
-    stats: &mut Calibration,
-) -> Features {
-    stats.add_edges(centre, x, graph);
-    let a = linear(&l.tensors[centre], x);
-    let b = linear(&l.tensors[centre + 1], x);
-    let mut out = Features::zeros(a.channels, x.n);
-    for c in 0..a.channels {
-        let (ac, bc) = (a.row(c), b.row(c));
-        let edges = graph
-            .iter()
-            .enumerate()
-            .flat_map(|(i, nb)| nb.iter().map(move |&j| ac[i] + bc[j]));
-        let (mean, inv_std) = normalizer(edges);
-        for (i, nb) in graph.iter().enumerate() {
-            let best = nb.iter().map(|&j| bc[j]).fold(f64::NEG_INFINITY, f64::max);
-            out.row_mut(c)[i] = leaky_relu((ac[i] + best - mean) * inv_std);
-        }
-    }
+        .map(|v| v.max(0.0));
+    let update = linear(&t[5], &hidden);
+    let mut out = x.clone();
+    out.x.iter_mut().zip(&update.x).for_each(|(o, u)| *o += u);
     out
 }
 
-/// `x + MLP([x, merge(attention(q(x), k(src), v(src)))])` (supp. eq. 6-8), channel `c` in
-/// head `c % heads`.
-fn cross_layer(
-    l: &Layers<'_>,
-    x: &Features,
-    src: &Features,
-    stats: &mut Calibration,
-) -> Features {
-    let base = l.cross_base();
-    let t = &l.tensors[base..base + 6];
-    stats.add(base, x, false);
-    stats.add(base + 1, src, false);
-    stats.add(base + 2, src, false);
-    let q = linear(&t[0], x);
-    let k = linear(&t[1], src);
-    let v = linear(&t[2], src);
-    let heads = usize::from(l.config.heads);
+/// Scaled dot-product attention of queries `q` over keys `k` and values `v`, channel `c`
+/// in head `c % heads`.
+fn attention(heads: usize, q: &Features, k: &Features, v: &Features) -> Features {
     let d = q.channels;
     let scale = 1.0 / ((d / heads) as f64).sqrt();
-    let (q, k) = (q.point_major(), k.point_major());
-    let mut message = Features::zeros(d, x.n);
-    let mut scores = vec![0.0f64; src.n];
-    for i in 0..x.n {
-        let qi = &q[i * d..(i + 1) * d];
+    let (qt, kt) = (q.point_major(), k.point_major());
+    let mut message = Features::zeros(d, q.n);
+    let mut scores = vec![0.0f64; k.n];
+    for i in 0..q.n {
+        let qi = &qt[i * d..(i + 1) * d];
         for h in 0..heads {
             for (j, s) in scores.iter_mut().enumerate() {
-                let kj = &k[j * d..(j + 1) * d];
+                let kj = &kt[j * d..(j + 1) * d];
                 *s = (h..d).step_by(heads).map(|c| qi[c] * kj[c]).sum::<f64>() * scale;
             }
             let max = scores.iter().copied().fold(f64::NEG_INFINITY, f64::max);
@@ -600,16 +964,7 @@ fn cross_layer(
             }
         }
     }
-    stats.add(base + 3, &message, false);
-    let merged = linear(&t[3], &message);
-    let cat = Features::concat(&[x, &merged]);
-    stats.add(base + 4, &cat, true);
-    let hidden = linear(&t[4], &cat).instance_norm().map(|v| v.max(0.0));
-    stats.add(base + 5, &hidden, false);
-    let update = linear(&t[5], &hidden);
-    let mut out = x.clone();
-    out.x.iter_mut().zip(&update.x).for_each(|(o, u)| *o += u);
-    out
+    message
 }
 
 fn l2_normalize(mut x: Features) -> Features {
@@ -624,32 +979,6 @@ fn l2_normalize(mut x: Features) -> Features {
         }
     }
     x
-}
-
-/// The match classifier on `[f2d; f3d]` of each match (a single match twice).
-fn classifier(
-    l: &Layers<'_>,
-    d2: &Features,
-    d3: &Features,
-    matches: &[(usize, usize)],
-    stats: &mut Calibration,
-) {
-    if matches.is_empty() {
-        return;
-    }
-    let mut list = matches.to_vec();
-    if list.len() == 1 {
-        list.push(list[0]);
-    }
-    let i2: Vec<usize> = list.iter().map(|m| m.0).collect();
-    let i3: Vec<usize> = list.iter().map(|m| m.1).collect();
-    let input = Features::concat(&[&d2.gather(&i2), &d3.gather(&i3)]);
-    let first = l.classifier_input();
-    stats.add(first, &input, false);
-    let x = linear(&l.tensors[first], &input);
-    let blocks = usize::from(l.config.classifier_blocks);
-    let x = residual_blocks(l, x, first + 1, blocks, stats);
-    stats.add(first + 1 + 2 * blocks, &x, false);
 }
 
 #[cfg(test)]
@@ -670,46 +999,5 @@ mod tests {
         }
         let again = synthetic_pairs(5, 7);
         assert_eq!(pairs[3].query, again[3].query);
-    }
-
-    /// The factored edge moments equal the ones summed over the explicit edges.
-    #[test]
-    fn edge_moments_match_explicit_edges() {
-        let config = ModelConfig {
-            feature_dim: 2,
-            encoder_blocks: 1,
-            ..ModelConfig::REFERENCE
-        };
-        let x = Features {
-            channels: 2,
-            n: 4,
-            x: vec![1.0, -2.0, 0.5, 3.0, 0.0, 1.0, 2.0, -1.0],
-        };
-        let graph = vec![vec![1, 2], vec![0, 3], vec![3, 0], vec![2, 0]];
-        let mut stats = Calibration::new(&config);
-        let centre = 1 + 2;
-        stats.add_edges(centre, &x, &graph);
-        let edges: Vec<[f64; 4]> = graph
-            .iter()
-            .enumerate()
-            .flat_map(|(i, nb)| {
-                let x = &x;
-                nb.iter()
-                    .map(move |&j| [x.x[i], x.x[4 + i], x.x[j], x.x[4 + j]])
-            })
-            .collect();
-        let mean: [f64; 4] =
-            core::array::from_fn(|a| edges.iter().map(|e| e[a]).sum::<f64>() / 8.0);
-        let g = stats.group_of(centre);
-        assert_eq!((g.dim, g.tensors.len(), g.samples), (4, 2, 8.0));
-        for a in 0..4 {
-            for b in 0..4 {
-                let expected: f64 = edges
-                    .iter()
-                    .map(|e| (e[a] - mean[a]) * (e[b] - mean[b]))
-                    .sum();
-                assert!((g.moments[a * 4 + b] - expected).abs() < 1e-12, "{a} {b}");
-            }
-        }
     }
 }

@@ -17,7 +17,7 @@ use gomatch::weights::{
 };
 use safetensors::{Dtype, SafeTensors};
 
-use crate::calibration::{self, Calibration};
+use crate::calibration::{self, FitOptions};
 use crate::quantize::{self, Int8Tensor, Rounding, ScaleSearch};
 
 /// Command-line arguments of `convert`.
@@ -554,34 +554,15 @@ pub fn write_blob(
     options: &Options,
     tensors: &[FloatLinear],
 ) -> Result<Vec<u8>> {
-    write_blob_calibrated(config, options, tensors, None)
+    write_blob_with(config, options, tensors, None)
 }
 
-/// The input moments [`Rounding::Gptq`] rounds with: the f32 model on the synthetic
-/// calibration pairs of `options`.
-pub fn calibrate(
+/// [`write_blob`] with the int8 tensors given (fitted when `None`).
+pub fn write_blob_with(
     config: &ModelConfig,
     options: &Options,
     tensors: &[FloatLinear],
-) -> Result<Calibration> {
-    let reference = write_blob(
-        config,
-        &Options {
-            precision: Precision::F32,
-            ..options.clone()
-        },
-        tensors,
-    )?;
-    let pairs = calibration::synthetic_pairs(options.calibration_pairs, options.calibration_seed);
-    calibration::calibrate(config, tensors, &reference, &pairs)
-}
-
-/// [`write_blob`] with the calibration moments given (computed when `None` and needed).
-pub fn write_blob_calibrated(
-    config: &ModelConfig,
-    options: &Options,
-    tensors: &[FloatLinear],
-    calibration: Option<&Calibration>,
+    int8: Option<&[Option<Int8Tensor>]>,
 ) -> Result<Vec<u8>> {
     ensure!(
         tensors.len() == tensor_count(config),
@@ -605,7 +586,14 @@ pub fn write_blob_calibrated(
         );
         precisions.push(options.precision_of(&spec.name.to_string()));
     }
-    let int8 = int8_tensors(config, options, tensors, &precisions, calibration)?;
+    let fitted;
+    let int8 = match int8 {
+        Some(given) => given,
+        None => {
+            fitted = int8_tensors(config, options, tensors, &precisions)?;
+            &fitted[..]
+        }
+    };
     let mut blob = preamble().to_vec();
     let header = BlobHeader {
         config: *config,
@@ -613,7 +601,7 @@ pub fn write_blob_calibrated(
         tensor_count: u16::try_from(tensors.len())?,
     };
     blob.extend(postcard::to_allocvec(&header)?);
-    for ((t, &precision), q) in tensors.iter().zip(&precisions).zip(&int8) {
+    for ((t, &precision), q) in tensors.iter().zip(&precisions).zip(int8) {
         let (weights, scales) = encode_weights(t, precision, q.as_ref())?;
         let bias: Vec<u8> = t.bias.iter().flat_map(|b| b.to_le_bytes()).collect();
         let record = TensorRecord {
@@ -631,63 +619,54 @@ pub fn write_blob_calibrated(
     Ok(blob)
 }
 
-/// The int8 encoding of every tensor stored in int8 (`None` for the others).
-fn int8_tensors(
+/// The precision of every tensor under `options`.
+pub fn precisions(config: &ModelConfig, options: &Options) -> Vec<Precision> {
+    (0..tensor_count(config))
+        .filter_map(|i| tensor_spec(config, i))
+        .map(|spec| options.precision_of(&spec.name.to_string()))
+        .collect()
+}
+
+/// The int8 encoding of every tensor stored in int8 (`None` for the others), rounded as
+/// `options` ask.
+pub fn int8_tensors(
     config: &ModelConfig,
     options: &Options,
     tensors: &[FloatLinear],
     precisions: &[Precision],
-    calibration: Option<&Calibration>,
 ) -> Result<Vec<Option<Int8Tensor>>> {
-    let mut out: Vec<Option<Int8Tensor>> = vec![None; tensors.len()];
     if !precisions.contains(&Precision::Int8) {
-        return Ok(out);
+        return Ok(vec![None; tensors.len()]);
     }
-    if options.rounding == Rounding::Nearest {
-        for ((t, &p), o) in tensors.iter().zip(precisions).zip(out.iter_mut()) {
-            if p == Precision::Int8 {
-                *o = Some(quantize::round_to_nearest(t, options.scale));
-            }
+    let correct = match options.rounding {
+        Rounding::Nearest => {
+            return Ok(tensors
+                .iter()
+                .zip(precisions)
+                .map(|(t, &p)| {
+                    (p == Precision::Int8).then(|| quantize::round_to_nearest(t, options.scale))
+                })
+                .collect())
         }
-        return Ok(out);
-    }
-    let computed;
-    let stats = match calibration {
-        Some(c) => c,
-        None => {
-            computed = calibrate(config, options, tensors)?;
-            &computed
-        }
+        Rounding::Gptq => false,
+        Rounding::GptqCorrected => true,
     };
-    for group in &stats.groups {
-        // Only the int8 members are rounded; the moments of the others are left out.
-        let mut columns = Vec::new();
-        let mut at = 0;
-        let mut members = Vec::new();
-        for &index in &group.tensors {
-            let cols = tensors[index].cols;
-            if precisions[index] == Precision::Int8 {
-                columns.extend(at..at + cols);
-                members.push(index);
-            }
-            at += cols;
-        }
-        if members.is_empty() {
-            continue;
-        }
-        let full = group.hessian();
-        let hessian: Vec<f64> = columns
-            .iter()
-            .flat_map(|&a| columns.iter().map(move |&b| (a, b)))
-            .map(|(a, b)| full[a * group.dim + b])
-            .collect();
-        let refs: Vec<&FloatLinear> = members.iter().map(|&i| &tensors[i]).collect();
-        let rounded = quantize::gptq(&refs, &hessian, options.scale)?;
-        for (index, q) in members.into_iter().zip(rounded) {
-            out[index] = Some(q);
-        }
-    }
-    Ok(out)
+    let reference = write_blob(
+        config,
+        &Options {
+            precision: Precision::F32,
+            keep_f32: vec![],
+            keep_f16: vec![],
+            ..options.clone()
+        },
+        tensors,
+    )?;
+    let pairs = calibration::synthetic_pairs(options.calibration_pairs, options.calibration_seed);
+    let fit = FitOptions {
+        scale: options.scale,
+        correct,
+    };
+    calibration::fit_int8(config, tensors, precisions, &reference, &pairs, fit)
 }
 
 /// Weight bytes and (int8) scale bytes of one tensor.

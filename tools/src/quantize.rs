@@ -17,8 +17,11 @@ use crate::convert::FloatLinear;
 pub enum Rounding {
     /// Each weight to the nearest level.
     Nearest,
-    /// Error-compensating rounding with calibration moments (GPTQ).
+    /// Error-compensating rounding with the float model's input moments (GPTQ).
     Gptq,
+    /// GPTQ layer by layer on the inputs of the model quantised so far, aiming at the
+    /// float model's outputs (also compensates the error of the layers before).
+    GptqCorrected,
 }
 
 /// How the scale of a row is chosen.
@@ -164,17 +167,23 @@ fn permuted(m: &[f64], dim: usize, order: &[usize]) -> Vec<f64> {
     out
 }
 
-/// The upper Cholesky factor `U` of `H^-1` (`H^-1 = U^T U`), `H` dampened by
-/// [`DAMPENING`] of its mean diagonal and dead inputs (zero diagonal) given unit energy.
-fn inverse_cholesky_upper(mut h: Vec<f64>, dim: usize) -> Result<Vec<f64>> {
+/// `H` dampened by [`DAMPENING`] of its mean diagonal, dead inputs (zero diagonal) given
+/// the mean energy.
+pub fn dampened(mut h: Vec<f64>, dim: usize) -> Vec<f64> {
     let mean_diag = (0..dim).map(|i| h[i * dim + i]).sum::<f64>() / dim.max(1) as f64;
+    let mean_diag = if mean_diag > 0.0 { mean_diag } else { 1.0 };
     for i in 0..dim {
         if h[i * dim + i] <= 0.0 {
-            h[i * dim + i] = mean_diag.max(1.0);
+            h[i * dim + i] = mean_diag;
         }
         h[i * dim + i] += DAMPENING * mean_diag;
     }
-    let l = cholesky(&h, dim)?;
+    h
+}
+
+/// The upper Cholesky factor `U` of `H^-1` (`H^-1 = U^T U`) for the [`dampened`] `H`.
+fn inverse_cholesky_upper(h: Vec<f64>, dim: usize) -> Result<Vec<f64>> {
+    let l = cholesky(&dampened(h, dim), dim)?;
     // H^-1 = L^-T L^-1; invert L (lower triangular) column by column.
     let mut linv = vec![0.0f64; dim * dim];
     for c in 0..dim {
@@ -203,7 +212,7 @@ fn inverse_cholesky_upper(mut h: Vec<f64>, dim: usize) -> Result<Vec<f64>> {
 }
 
 /// Lower Cholesky factor of a symmetric positive definite matrix.
-fn cholesky(a: &[f64], dim: usize) -> Result<Vec<f64>> {
+pub fn cholesky(a: &[f64], dim: usize) -> Result<Vec<f64>> {
     let mut l = vec![0.0f64; dim * dim];
     for r in 0..dim {
         for c in 0..=r {

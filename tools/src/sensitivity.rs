@@ -11,7 +11,7 @@ use gomatch::Precision;
 
 use crate::agreement::ReferenceMatches;
 use crate::calibration::synthetic_pairs;
-use crate::convert::{calibrate, float_tensors, write_blob, write_blob_calibrated, Options};
+use crate::convert::{float_tensors, int8_tensors, precisions, write_blob, write_blob_with, Options};
 use crate::quantize::{Rounding, ScaleSearch};
 
 /// Command-line arguments of `sensitivity`.
@@ -56,15 +56,13 @@ pub fn run(args: &Args) -> Result<()> {
     )?;
     let pairs = synthetic_pairs(args.pairs, args.seed);
     let matches = ReferenceMatches::new(&reference, &pairs)?;
-    let calibration = match args.rounding {
-        Rounding::Gptq => Some(calibrate(&config, &base, &tensors)?),
-        Rounding::Nearest => None,
-    };
+    // Every tensor rounded once with all of them int8; the variants pick from these.
+    let int8 = int8_tensors(&config, &base, &tensors, &precisions(&config, &base))?;
     let names: Vec<String> = (0..tensors.len())
         .filter_map(|i| tensor_spec(&config, i))
         .map(|s| s.name.to_string())
         .collect();
-    let all = write_blob_calibrated(&config, &base, &tensors, calibration.as_ref())?;
+    let all = write_blob_with(&config, &base, &tensors, Some(&int8))?;
     let s = matches.agreement(&all)?;
     println!("all int8: mean {:.4} pooled {:.4}", s.mean, s.pooled);
     println!("tensor\tweights\tonly_int8_mean\tonly_int8_pooled\tall_but_int8_mean\tall_but_int8_pooled");
@@ -77,17 +75,17 @@ pub fn run(args: &Args) -> Result<()> {
             keep_f32: vec![name.clone()],
             ..base.clone()
         };
-        let a = matches.agreement(&write_blob_calibrated(
+        let a = matches.agreement(&write_blob_with(
             &config,
             &only,
             &tensors,
-            calibration.as_ref(),
+            Some(&int8),
         )?)?;
-        let b = matches.agreement(&write_blob_calibrated(
+        let b = matches.agreement(&write_blob_with(
             &config,
             &all_but,
             &tensors,
-            calibration.as_ref(),
+            Some(&int8),
         )?)?;
         println!(
             "{name}\t{}\t{:.4}\t{:.4}\t{:.4}\t{:.4}",
