@@ -132,10 +132,10 @@ impl Moments {
             Some(q) => {
                 self.apart = true;
                 let q = centre(q);
-                add_cross(&mut self.h, self.dim, 0, 0, &q, &q, None);
+                add_gram(&mut self.h, self.dim, &q);
                 add_cross(&mut self.g, self.dim, 0, 0, &f, &q, None);
             }
-            None => add_cross(&mut self.h, self.dim, 0, 0, &f, &f, None),
+            None => add_gram(&mut self.h, self.dim, &f),
         }
     }
 
@@ -145,10 +145,10 @@ impl Moments {
         match &x.q {
             Some(q) => {
                 self.apart = true;
-                edge_moments(&mut self.h, self.dim, q, q, graph);
-                edge_moments(&mut self.g, self.dim, &x.f, q, graph);
+                edge_moments(&mut self.h, self.dim, q, None, graph);
+                edge_moments(&mut self.g, self.dim, &x.f, Some(q), graph);
             }
-            None => edge_moments(&mut self.h, self.dim, &x.f, &x.f, graph),
+            None => edge_moments(&mut self.h, self.dim, &x.f, None, graph),
         }
     }
 
@@ -163,11 +163,17 @@ impl Moments {
 }
 
 /// `m += sum_e (a_e - mean a)(b_e - mean b)^T` over the edges `e = (i, j)` of `graph`,
-/// with `a_e = [a_i; a_j]` (likewise `b_e`), without forming the edges: with every point
-/// having `k` neighbours the blocks are `k sum_i a_i b_i^T`, `sum_i a_i s(b)_i^T`,
-/// `sum_i s(a)_i b_i^T` and `sum_j indegree_j a_j b_j^T`, `s(x)_i` the sum of `x` over
-/// the neighbours of `i`, each half centred on its edge mean.
-fn edge_moments(m: &mut [f64], dim: usize, a: &Features, b: &Features, graph: &[Vec<usize>]) {
+/// with `a_e = [a_i; a_j]` (likewise `b_e`; `b` is `a` when `None`), without forming the
+/// edges: with every point having `k` neighbours the blocks are `k sum_i a_i b_i^T`,
+/// `sum_i a_i s(b)_i^T`, `sum_i s(a)_i b_i^T` and `sum_j indegree_j a_j b_j^T`, `s(x)_i`
+/// the sum of `x` over the neighbours of `i`, each half centred on its edge mean.
+fn edge_moments(
+    m: &mut [f64],
+    dim: usize,
+    a: &Features,
+    b: Option<&Features>,
+    graph: &[Vec<usize>],
+) {
     let n = a.n;
     let k = graph.first().map_or(0, Vec::len);
     if k == 0 {
@@ -200,12 +206,58 @@ fn edge_moments(m: &mut [f64], dim: usize, a: &Features, b: &Features, graph: &[
         (centre, neighbour, sums)
     };
     let (ai, aj, sa) = halves(a);
-    let (bi, bj, sb) = halves(b);
     let d = a.channels;
-    add_cross(m, dim, 0, 0, &ai, &bi, Some(&vec![k as f64; n]));
-    add_cross(m, dim, 0, d, &ai, &sb, None);
-    add_cross(m, dim, d, 0, &sa, &bi, None);
-    add_cross(m, dim, d, d, &aj, &bj, Some(&indegree));
+    match b {
+        Some(b) => {
+            let (bi, bj, sb) = halves(b);
+            add_cross(m, dim, 0, 0, &ai, &bi, Some(&vec![k as f64; n]));
+            add_cross(m, dim, 0, d, &ai, &sb, None);
+            add_cross(m, dim, d, 0, &sa, &bi, None);
+            add_cross(m, dim, d, d, &aj, &bj, Some(&indegree));
+        }
+        None => {
+            let mut corner = vec![0.0; d * d];
+            add_cross(&mut corner, d, 0, 0, &ai, &sa, None);
+            for p in 0..d {
+                for q in 0..d {
+                    m[p * dim + d + q] += corner[p * d + q];
+                    m[(d + q) * dim + p] += corner[p * d + q];
+                }
+            }
+            let (mut ii, mut jj) = (vec![0.0; d * d], vec![0.0; d * d]);
+            add_gram(&mut ii, d, &ai);
+            add_gram(&mut jj, d, &weighted(&aj, &indegree));
+            for p in 0..d {
+                for q in 0..d {
+                    m[p * dim + q] += k as f64 * ii[p * d + q];
+                    m[(d + p) * dim + d + q] += jj[p * d + q];
+                }
+            }
+        }
+    }
+}
+
+/// `x` with every point `i` scaled by `sqrt(w_i)` (so its Gram matrix is weighted by `w`).
+fn weighted(x: &Features, w: &[f64]) -> Features {
+    let mut out = x.clone();
+    let roots: Vec<f64> = w.iter().map(|v| v.sqrt()).collect();
+    for c in 0..out.channels {
+        out.row_mut(c).iter_mut().zip(&roots).for_each(|(v, r)| *v *= r);
+    }
+    out
+}
+
+/// `m += sum_i x_i x_i^T` (`dim = x.channels`), computing one triangle.
+fn add_gram(m: &mut [f64], dim: usize, x: &Features) {
+    for p in 0..x.channels {
+        for q in p..x.channels {
+            let v = dot(x.row(p), x.row(q));
+            m[p * dim + q] += v;
+            if q != p {
+                m[q * dim + p] += v;
+            }
+        }
+    }
 }
 
 /// `m[r0 + a][c0 + b] += sum_i w_i a_i b_i` over the points of two channel-major sets.
@@ -999,5 +1051,105 @@ mod tests {
         }
         let again = synthetic_pairs(5, 7);
         assert_eq!(pairs[3].query, again[3].query);
+    }
+
+    fn features(channels: usize, n: usize, seed: usize) -> Features {
+        Features {
+            channels,
+            n,
+            x: (0..channels * n)
+                .map(|i| (((i + seed) * 7919) % 23) as f64 / 7.0 - 1.5)
+                .collect(),
+        }
+    }
+
+    /// The factored edge moments equal the ones summed over the explicit edges, for the
+    /// moments of one path (`b = a`) and across two paths.
+    #[test]
+    fn edge_moments_match_explicit_edges() {
+        let (d, n) = (3, 5);
+        let a = features(d, n, 0);
+        let b = features(d, n, 11);
+        let graph: Vec<Vec<usize>> = (0..n).map(|i| vec![(i + 1) % n, (i + 3) % n]).collect();
+        let edge = |x: &Features, i: usize, j: usize| -> Vec<f64> {
+            (0..d).map(|c| x.row(c)[i]).chain((0..d).map(|c| x.row(c)[j])).collect()
+        };
+        let explicit = |x: &Features, y: &Features| -> Vec<f64> {
+            let edges: Vec<(Vec<f64>, Vec<f64>)> = graph
+                .iter()
+                .enumerate()
+                .flat_map(|(i, nb)| nb.iter().map(move |&j| (edge(x, i, j), edge(y, i, j))))
+                .collect();
+            let mean = |pick: &dyn Fn(&(Vec<f64>, Vec<f64>)) -> f64| {
+                edges.iter().map(pick).sum::<f64>() / edges.len() as f64
+            };
+            let ma: Vec<f64> = (0..2 * d).map(|p| mean(&|e| e.0[p])).collect();
+            let mb: Vec<f64> = (0..2 * d).map(|q| mean(&|e| e.1[q])).collect();
+            (0..4 * d * d)
+                .map(|k| {
+                    let (p, q) = (k / (2 * d), k % (2 * d));
+                    edges
+                        .iter()
+                        .map(|e| (e.0[p] - ma[p]) * (e.1[q] - mb[q]))
+                        .sum()
+                })
+                .collect()
+        };
+        for (second, expected) in [(None, explicit(&a, &a)), (Some(&b), explicit(&a, &b))] {
+            let mut m = vec![0.0; 4 * d * d];
+            edge_moments(&mut m, 2 * d, &a, second, &graph);
+            for (k, (got, want)) in m.iter().zip(&expected).enumerate() {
+                assert!((got - want).abs() < 1e-9, "{k}: {got} vs {want}");
+            }
+        }
+    }
+
+    /// The least-squares target leaves a layer unchanged when the quantised path equals
+    /// the float path and compensates a known input error otherwise.
+    #[test]
+    fn corrected_target_compensates_input_error() {
+        let (rows, cols, n) = (2, 3, 40);
+        let f = features(cols, n, 3);
+        // The quantised path sees input channel 0 scaled by 0.9.
+        let mut q = f.clone();
+        q.row_mut(0).iter_mut().for_each(|v| *v *= 0.9);
+        let w = FloatLinear {
+            rows,
+            cols,
+            weights: vec![0.5, -0.25, 0.125, 0.75, 0.3, -0.6],
+            bias: vec![],
+        };
+        let run = |x: &Both| -> Vec<Option<Int8Tensor>> {
+            let mut m = Moments::new(cols);
+            m.add(x, false);
+            let precisions = [Precision::Int8];
+            let mut engine = Engine {
+                config: ModelConfig::REFERENCE,
+                float: std::slice::from_ref(&w),
+                effective: vec![w.clone()],
+                precisions: &precisions,
+                options: FitOptions {
+                    scale: ScaleSearch::MaxAbs,
+                    correct: true,
+                },
+                int8: vec![None],
+            };
+            engine.fit_group(&[0], &m).expect("fits");
+            engine.int8
+        };
+        let same = run(&Both::exact(f.clone()))[0].clone().expect("int8");
+        let nearest = quantize::round_to_nearest(&w, ScaleSearch::MaxAbs);
+        assert_eq!(same.levels, nearest.levels);
+        let apart = run(&Both {
+            f: f.clone(),
+            q: Some(q),
+        })[0]
+            .clone()
+            .expect("int8");
+        // Column 0 grows by about 1 / 0.9 to undo the input's shrinkage.
+        for r in 0..rows {
+            let ratio = f32::from(apart.levels[r * cols]) * apart.scales[r] / w.weights[r * cols];
+            assert!((ratio - 1.0 / 0.9).abs() < 0.02, "row {r}: {ratio}");
+        }
     }
 }
