@@ -249,9 +249,13 @@ fn weighted(x: &Features, w: &[f64]) -> Features {
 
 /// `m += sum_i x_i x_i^T` (`dim = x.channels`), computing one triangle.
 fn add_gram(m: &mut [f64], dim: usize, x: &Features) {
+    let mut upper = vec![0.0f64; x.channels];
     for p in 0..x.channels {
-        for q in p..x.channels {
-            let v = dot(x.row(p), x.row(q));
+        let part = &mut upper[p..];
+        part.fill(0.0);
+        dots(x.row(p), x, p, part);
+        for (offset, &v) in part.iter().enumerate() {
+            let q = p + offset;
             m[p * dim + q] += v;
             if q != p {
                 m[q * dim + p] += v;
@@ -283,9 +287,39 @@ fn add_cross(
         None => a,
     };
     for p in 0..a.channels {
-        for q in 0..b.channels {
-            m[(r0 + p) * dim + c0 + q] += dot(a.row(p), b.row(q));
+        let row = &mut m[(r0 + p) * dim + c0..(r0 + p) * dim + c0 + b.channels];
+        dots(a.row(p), b, 0, row);
+    }
+}
+
+/// `out[q - first] += a . b_q` for the channels `q >= first` of `b`, four at a time.
+fn dots(a: &[f64], b: &Features, first: usize, out: &mut [f64]) {
+    let mut q = first;
+    while q + 4 <= b.channels {
+        let n = a.len() - a.len() % 2;
+        let mut acc = [[0.0f64; 2]; 4];
+        for ((((x, r0), r1), r2), r3) in a[..n]
+            .chunks_exact(2)
+            .zip(b.row(q)[..n].chunks_exact(2))
+            .zip(b.row(q + 1)[..n].chunks_exact(2))
+            .zip(b.row(q + 2)[..n].chunks_exact(2))
+            .zip(b.row(q + 3)[..n].chunks_exact(2))
+        {
+            for l in 0..2 {
+                acc[0][l] += x[l] * r0[l];
+                acc[1][l] += x[l] * r1[l];
+                acc[2][l] += x[l] * r2[l];
+                acc[3][l] += x[l] * r3[l];
+            }
         }
+        for (t, s) in acc.iter().enumerate() {
+            let tail: f64 = a[n..].iter().zip(&b.row(q + t)[n..]).map(|(x, y)| x * y).sum();
+            out[q + t - first] += (s[0] + s[1]) + tail;
+        }
+        q += 4;
+    }
+    for q in q..b.channels {
+        out[q - first] += dot(a, b.row(q));
     }
 }
 
@@ -368,17 +402,6 @@ impl Features {
         out
     }
 
-    /// The values point-major: point `i`, channel `c` at `i * channels + c`.
-    fn point_major(&self) -> Vec<f64> {
-        let mut out = vec![0.0; self.x.len()];
-        for c in 0..self.channels {
-            for (i, &v) in self.row(c).iter().enumerate() {
-                out[i * self.channels + c] = v;
-            }
-        }
-        out
-    }
-
     fn map(mut self, f: impl Fn(f64) -> f64) -> Features {
         self.x.iter_mut().for_each(|v| *v = f(*v));
         self
@@ -410,19 +433,47 @@ fn leaky_relu(v: f64) -> f64 {
     }
 }
 
-/// `y = W x + b` per point.
+/// `y = W x + b` per point, in register blocks of 4 outputs x 4 points.
 fn linear(w: &FloatLinear, x: &Features) -> Features {
-    let n = x.n;
-    let mut y = Features::zeros(w.rows, n);
-    for r in 0..w.rows {
-        let out = y.row_mut(r);
-        out.fill(f64::from(w.bias.get(r).copied().unwrap_or(0.0)));
-        for (k, &wk) in w.weights[r * w.cols..(r + 1) * w.cols].iter().enumerate() {
-            let wk = f64::from(wk);
-            for (o, &v) in out.iter_mut().zip(x.row(k)) {
-                *o += wk * v;
+    const B: usize = 4;
+    let (rows, cols, n) = (w.rows, w.cols, x.n);
+    let blocks = rows.div_ceil(B);
+    // Weights interleaved by blocks of rows: `[block][input][B]`.
+    let mut weights = vec![[0.0f64; B]; blocks * cols];
+    for (r, row) in w.weights.chunks_exact(cols.max(1)).enumerate() {
+        for (k, &v) in row.iter().enumerate() {
+            weights[r / B * cols + k][r % B] = f64::from(v);
+        }
+    }
+    let mut y = Features::zeros(rows, n);
+    let mut packed = vec![[0.0f64; B]; cols];
+    let mut t0 = 0;
+    while t0 < n {
+        let len = B.min(n - t0);
+        for (k, p) in packed.iter_mut().enumerate() {
+            *p = [0.0; B];
+            p[..len].copy_from_slice(&x.row(k)[t0..t0 + len]);
+        }
+        for (b, block) in weights.chunks_exact(cols.max(1)).enumerate() {
+            let mut acc = [[0.0f64; B]; B];
+            for (wk, xk) in block.iter().zip(&packed) {
+                for (a, &wr) in acc.iter_mut().zip(wk) {
+                    for l in 0..B {
+                        a[l] += wr * xk[l];
+                    }
+                }
+            }
+            for (i, a) in acc.iter().enumerate() {
+                let r = b * B + i;
+                if r < rows {
+                    let bias = f64::from(w.bias.get(r).copied().unwrap_or(0.0));
+                    for (o, &v) in y.row_mut(r)[t0..t0 + len].iter_mut().zip(a) {
+                        *o = bias + v;
+                    }
+                }
             }
         }
+        t0 += len;
     }
     y
 }
@@ -996,23 +1047,40 @@ fn cross(t: &[FloatLinear], heads: usize, x: &Features, src: &Features) -> Featu
 /// in head `c % heads`.
 fn attention(heads: usize, q: &Features, k: &Features, v: &Features) -> Features {
     let d = q.channels;
-    let scale = 1.0 / ((d / heads) as f64).sqrt();
-    let (qt, kt) = (q.point_major(), k.point_major());
+    let head_dim = d / heads;
+    let scale = 1.0 / (head_dim as f64).sqrt();
+    // Point-major, head-major: point `i`, head `h`, dimension `e` at `i d + h head_dim + e`.
+    let order = |x: &Features| -> Vec<f64> {
+        let mut out = vec![0.0; x.x.len()];
+        for c in 0..d {
+            let at = (c % heads) * head_dim + c / heads;
+            for (i, &value) in x.row(c).iter().enumerate() {
+                out[i * d + at] = value;
+            }
+        }
+        out
+    };
+    let (qt, kt, vt) = (order(q), order(k), order(v));
     let mut message = Features::zeros(d, q.n);
     let mut scores = vec![0.0f64; k.n];
+    let mut acc = vec![0.0f64; head_dim];
     for i in 0..q.n {
-        let qi = &qt[i * d..(i + 1) * d];
         for h in 0..heads {
+            let range = h * head_dim..(h + 1) * head_dim;
+            let qi = &qt[i * d..(i + 1) * d][range.clone()];
             for (j, s) in scores.iter_mut().enumerate() {
-                let kj = &kt[j * d..(j + 1) * d];
-                *s = (h..d).step_by(heads).map(|c| qi[c] * kj[c]).sum::<f64>() * scale;
+                *s = dot(qi, &kt[j * d..(j + 1) * d][range.clone()]) * scale;
             }
             let max = scores.iter().copied().fold(f64::NEG_INFINITY, f64::max);
             scores.iter_mut().for_each(|s| *s = (*s - max).exp());
             let total: f64 = scores.iter().sum();
-            for c in (h..d).step_by(heads) {
-                message.row_mut(c)[i] =
-                    scores.iter().zip(v.row(c)).map(|(p, v)| p * v).sum::<f64>() / total;
+            acc.fill(0.0);
+            for (j, &p) in scores.iter().enumerate() {
+                let vj = &vt[j * d..(j + 1) * d][range.clone()];
+                acc.iter_mut().zip(vj).for_each(|(a, &v)| *a += p * v);
+            }
+            for (e, &a) in acc.iter().enumerate() {
+                message.row_mut(h + heads * e)[i] = a / total;
             }
         }
     }
