@@ -540,10 +540,10 @@ mod tests {
             ns: 3,
         };
         attend(&shape, &mut q, &k, &v);
-        for c in 0..d {
+        for (c, &got) in q.iter().enumerate().take(d) {
             let at = head_major(c, 2, 2);
             let mean = (v[at] + v[4 + at] + v[8 + at]) / 3.0;
-            assert!((q[c] - mean).abs() < 1e-6, "{c}: {} vs {mean}", q[c]);
+            assert!((got - mean).abs() < 1e-6, "{c}: {got} vs {mean}");
         }
     }
 
@@ -588,7 +588,10 @@ mod tests {
                     .map(|j| libm::exp(s[j] - m) / z * f64::from(v_channels[c * NS + j]))
                     .sum();
                 let got = f64::from(q[c * NX + i]);
-                assert!((got - expected).abs() < 1e-5, "{i} {c}: {got} vs {expected}");
+                assert!(
+                    (got - expected).abs() < 1e-5,
+                    "{i} {c}: {got} vs {expected}"
+                );
             }
         }
     }

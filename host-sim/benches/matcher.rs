@@ -124,14 +124,20 @@ fn breakdown<S: PlanScalar>(
         values.sort();
         values[values.len() / 2]
     };
-    let mut totals: Vec<Duration> = runs.iter().map(|r| r.iter().map(|(_, d)| *d).sum()).collect();
+    let mut totals: Vec<Duration> = runs
+        .iter()
+        .map(|r| r.iter().map(|(_, d)| *d).sum())
+        .collect();
     println!(
         "stage breakdown {label} N={n}: total {:.1} ms (median of {BREAKDOWN_RUNS}), {matches} matches, {iterations} Sinkhorn iterations",
         median(&mut totals).as_secs_f64() * 1e3
     );
     for (stage, (name, _)) in runs[0].iter().enumerate() {
         let mut times: Vec<Duration> = runs.iter().map(|r| r[stage].1).collect();
-        println!("  {name:32} {:8.2} ms", median(&mut times).as_secs_f64() * 1e3);
+        println!(
+            "  {name:32} {:8.2} ms",
+            median(&mut times).as_secs_f64() * 1e3
+        );
     }
 }
 

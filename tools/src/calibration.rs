@@ -79,7 +79,10 @@ fn synthetic_pair(rng: &mut Pcg64Mcg) -> Pair {
         },
     );
     while query.len() < n2 {
-        query.push([rng.random_range(lo[0]..hi[0]), rng.random_range(lo[1]..hi[1])]);
+        query.push([
+            rng.random_range(lo[0]..hi[0]),
+            rng.random_range(lo[1]..hi[1]),
+        ]);
     }
     query.shuffle(rng);
     Pair {
@@ -242,7 +245,10 @@ fn weighted(x: &Features, w: &[f64]) -> Features {
     let mut out = x.clone();
     let roots: Vec<f64> = w.iter().map(|v| v.sqrt()).collect();
     for c in 0..out.channels {
-        out.row_mut(c).iter_mut().zip(&roots).for_each(|(v, r)| *v *= r);
+        out.row_mut(c)
+            .iter_mut()
+            .zip(&roots)
+            .for_each(|(v, r)| *v *= r);
     }
     out
 }
@@ -313,7 +319,11 @@ fn dots(a: &[f64], b: &Features, first: usize, out: &mut [f64]) {
             }
         }
         for (t, s) in acc.iter().enumerate() {
-            let tail: f64 = a[n..].iter().zip(&b.row(q + t)[n..]).map(|(x, y)| x * y).sum();
+            let tail: f64 = a[n..]
+                .iter()
+                .zip(&b.row(q + t)[n..])
+                .map(|(x, y)| x * y)
+                .sum();
             out[q + t - first] += (s[0] + s[1]) + tail;
         }
         q += 4;
@@ -674,7 +684,8 @@ impl Engine<'_> {
                 .collect()
         };
         let h = sub(&m.h);
-        let mut targets: Vec<FloatLinear> = members.iter().map(|&i| self.float[i].clone()).collect();
+        let mut targets: Vec<FloatLinear> =
+            members.iter().map(|&i| self.float[i].clone()).collect();
         if self.options.correct {
             let solver = Ridge::new(&h, int8_columns.len())?;
             let g = m.cross();
@@ -685,7 +696,9 @@ impl Engine<'_> {
                         .iter()
                         .flat_map(|&i| {
                             let t = &ts[i];
-                            t.weights[r * t.cols..(r + 1) * t.cols].iter().map(|&w| f64::from(w))
+                            t.weights[r * t.cols..(r + 1) * t.cols]
+                                .iter()
+                                .map(|&w| f64::from(w))
                         })
                         .collect()
                 };
@@ -777,8 +790,12 @@ impl Engine<'_> {
                 .collect();
             self.fit(conv2, &h.iter().collect::<Vec<_>>(), true)?;
             for (x, h) in x.iter_mut().zip(&h) {
-                let z = self.apply(conv2, h).map(|z| z.instance_norm().map(|v| v.max(0.0)));
-                x.update(&z, |x, z| x.x.iter_mut().zip(&z.x).for_each(|(v, z)| *v += z));
+                let z = self
+                    .apply(conv2, h)
+                    .map(|z| z.instance_norm().map(|v| v.max(0.0)));
+                x.update(&z, |x, z| {
+                    x.x.iter_mut().zip(&z.x).for_each(|(v, z)| *v += z)
+                });
             }
         }
         Ok(x)
@@ -831,11 +848,7 @@ impl Engine<'_> {
     /// The cross layer on both directions (2D from 3D, then 3D from the updated 2D). Its
     /// tensors are fitted on the inputs of both calls; the second call's sources on the
     /// quantised path are the first call's outputs with the float cross layer.
-    fn cross_layer(
-        &mut self,
-        x2: &[Both],
-        x3: &[Both],
-    ) -> anyhow::Result<(Vec<Both>, Vec<Both>)> {
+    fn cross_layer(&mut self, x2: &[Both], x3: &[Both]) -> anyhow::Result<(Vec<Both>, Vec<Both>)> {
         let base = self.cross_base();
         let heads = usize::from(self.config.heads);
         let float = &self.float[base..base + 6];
@@ -1111,10 +1124,7 @@ mod tests {
         for p in &pairs {
             assert!((32..=400).contains(&p.query.len()));
             assert!(p.db.len() >= p.query.len());
-            assert!(p
-                .db
-                .iter()
-                .all(|b| b[0].abs() <= 0.6 && b[1].abs() <= 0.6));
+            assert!(p.db.iter().all(|b| b[0].abs() <= 0.6 && b[1].abs() <= 0.6));
             assert!(p.query.iter().all(|q| q[0].abs() < 2.0 && q[1].abs() < 2.0));
         }
         let again = synthetic_pairs(5, 7);
@@ -1140,15 +1150,19 @@ mod tests {
         let b = features(d, n, 11);
         let graph: Vec<Vec<usize>> = (0..n).map(|i| vec![(i + 1) % n, (i + 3) % n]).collect();
         let edge = |x: &Features, i: usize, j: usize| -> Vec<f64> {
-            (0..d).map(|c| x.row(c)[i]).chain((0..d).map(|c| x.row(c)[j])).collect()
+            (0..d)
+                .map(|c| x.row(c)[i])
+                .chain((0..d).map(|c| x.row(c)[j]))
+                .collect()
         };
         let explicit = |x: &Features, y: &Features| -> Vec<f64> {
-            let edges: Vec<(Vec<f64>, Vec<f64>)> = graph
+            type Edge = (Vec<f64>, Vec<f64>);
+            let edges: Vec<Edge> = graph
                 .iter()
                 .enumerate()
                 .flat_map(|(i, nb)| nb.iter().map(move |&j| (edge(x, i, j), edge(y, i, j))))
                 .collect();
-            let mean = |pick: &dyn Fn(&(Vec<f64>, Vec<f64>)) -> f64| {
+            let mean = |pick: &dyn Fn(&Edge) -> f64| {
                 edges.iter().map(pick).sum::<f64>() / edges.len() as f64
             };
             let ma: Vec<f64> = (0..2 * d).map(|p| mean(&|e| e.0[p])).collect();

@@ -206,9 +206,9 @@ pub const DEFAULT_KEEP_F32_F16: &[&str] = &[
 ];
 
 /// Tensors kept in f32 by default for int8 weights: the encoder input layer (256
-/// weights). Alone in int8 it costs more agreement than any other tensor (0.887 vs
-/// >= 0.987 on synthetic pairs, `gomatch-tools sensitivity`), and a layer on two
-/// coordinates leaves GPTQ nothing to compensate with.
+/// weights). Alone in int8 it costs more agreement than any other tensor (0.887, the
+/// others 0.987 or more on synthetic pairs, `gomatch-tools sensitivity`), and a layer
+/// on two coordinates leaves GPTQ nothing to compensate with.
 pub const DEFAULT_KEEP_F32_INT8: &[&str] = &["encoder.input[0]"];
 
 /// Converts checkpoint bytes into a blob of the given precision with the default

@@ -53,17 +53,19 @@ pub fn row_scale(row: &[f32], search: ScaleSearch) -> f32 {
     }
     match search {
         ScaleSearch::MaxAbs => max / 127.0,
-        ScaleSearch::Mse => (50..=100)
-            .map(|step| max * step as f32 / 100.0 / 127.0)
-            .map(|s| (rounding_error(row, s), s))
-            .fold((f64::INFINITY, max / 127.0), |best, c| {
-                if c.0 < best.0 {
-                    c
-                } else {
-                    best
-                }
-            })
-            .1,
+        ScaleSearch::Mse => {
+            (50..=100)
+                .map(|step| max * step as f32 / 100.0 / 127.0)
+                .map(|s| (rounding_error(row, s), s))
+                .fold((f64::INFINITY, max / 127.0), |best, c| {
+                    if c.0 < best.0 {
+                        c
+                    } else {
+                        best
+                    }
+                })
+                .1
+        }
     }
 }
 
@@ -98,7 +100,11 @@ pub fn round_to_nearest(t: &FloatLinear, search: ScaleSearch) -> Int8Tensor {
 /// concatenated), all with the same number of rows, given the input moment matrix
 /// `hessian` (`dim x dim`, `dim` the total columns). Columns are rounded in order of
 /// decreasing input energy (GPTQ's "act order").
-pub fn gptq(tensors: &[&FloatLinear], hessian: &[f64], search: ScaleSearch) -> Result<Vec<Int8Tensor>> {
+pub fn gptq(
+    tensors: &[&FloatLinear],
+    hessian: &[f64],
+    search: ScaleSearch,
+) -> Result<Vec<Int8Tensor>> {
     let rows = tensors.first().map_or(0, |t| t.rows);
     let dim: usize = tensors.iter().map(|t| t.cols).sum();
     ensure!(
@@ -134,9 +140,10 @@ pub fn gptq(tensors: &[&FloatLinear], hessian: &[f64], search: ScaleSearch) -> R
             owner[p] = (t, col - offsets[t]);
         }
         for (t, tensor) in tensors.iter().enumerate() {
-            out[t]
-                .scales
-                .push(row_scale(&tensor.weights[r * tensor.cols..(r + 1) * tensor.cols], search));
+            out[t].scales.push(row_scale(
+                &tensor.weights[r * tensor.cols..(r + 1) * tensor.cols],
+                search,
+            ));
         }
         for p in 0..dim {
             let (t, c) = owner[p];
@@ -196,7 +203,9 @@ fn inverse_cholesky_upper(h: Vec<f64>, dim: usize) -> Result<Vec<f64>> {
     let mut inv = vec![0.0f64; dim * dim];
     for a in 0..dim {
         for b in 0..=a {
-            let s: f64 = (a..dim).map(|k| linv[k * dim + a] * linv[k * dim + b]).sum();
+            let s: f64 = (a..dim)
+                .map(|k| linv[k * dim + a] * linv[k * dim + b])
+                .sum();
             inv[a * dim + b] = s;
             inv[b * dim + a] = s;
         }
@@ -278,7 +287,10 @@ mod tests {
                         (0..3).map(|m| u[m * 3 + a] * u[m * 3 + k]).sum::<f64>() * damped[k * 3 + b]
                     })
                     .sum();
-                assert!((v - f64::from(u8::from(a == b))).abs() < 1e-12, "{a} {b}: {v}");
+                assert!(
+                    (v - f64::from(u8::from(a == b))).abs() < 1e-12,
+                    "{a} {b}: {v}"
+                );
             }
         }
     }
@@ -306,7 +318,11 @@ mod tests {
                         })
                         .collect();
                     (0..cols)
-                        .map(|a| (0..cols).map(|b| e[a] * h[a * cols + b] * e[b]).sum::<f64>())
+                        .map(|a| {
+                            (0..cols)
+                                .map(|b| e[a] * h[a * cols + b] * e[b])
+                                .sum::<f64>()
+                        })
                         .sum::<f64>()
                 })
                 .sum()

@@ -11,7 +11,9 @@ use gomatch::Precision;
 
 use crate::agreement::ReferenceMatches;
 use crate::calibration::synthetic_pairs;
-use crate::convert::{float_tensors, int8_tensors, precisions, write_blob, write_blob_with, Options};
+use crate::convert::{
+    float_tensors, int8_tensors, precisions, write_blob, write_blob_with, Options,
+};
 use crate::quantize::{Rounding, ScaleSearch};
 
 /// Command-line arguments of `sensitivity`.
@@ -65,7 +67,9 @@ pub fn run(args: &Args) -> Result<()> {
     let all = write_blob_with(&config, &base, &tensors, Some(&int8))?;
     let s = matches.agreement(&all)?;
     println!("all int8: mean {:.4} pooled {:.4}", s.mean, s.pooled);
-    println!("tensor\tweights\tonly_int8_mean\tonly_int8_pooled\tall_but_int8_mean\tall_but_int8_pooled");
+    println!(
+        "tensor\tweights\tonly_int8_mean\tonly_int8_pooled\tall_but_int8_mean\tall_but_int8_pooled"
+    );
     for (index, name) in names.iter().enumerate() {
         let only = Options {
             keep_f32: names.iter().filter(|n| *n != name).cloned().collect(),
@@ -75,18 +79,8 @@ pub fn run(args: &Args) -> Result<()> {
             keep_f32: vec![name.clone()],
             ..base.clone()
         };
-        let a = matches.agreement(&write_blob_with(
-            &config,
-            &only,
-            &tensors,
-            Some(&int8),
-        )?)?;
-        let b = matches.agreement(&write_blob_with(
-            &config,
-            &all_but,
-            &tensors,
-            Some(&int8),
-        )?)?;
+        let a = matches.agreement(&write_blob_with(&config, &only, &tensors, Some(&int8))?)?;
+        let b = matches.agreement(&write_blob_with(&config, &all_but, &tensors, Some(&int8))?)?;
         println!(
             "{name}\t{}\t{:.4}\t{:.4}\t{:.4}\t{:.4}",
             tensors[index].weights.len(),

@@ -266,7 +266,10 @@ fn block<const FULL: bool>(
 #[inline(always)]
 pub fn store(out: &mut [f32], n: usize, row: usize, i0: usize, values: &[f32]) {
     let dst = &mut out[row * n + i0..row * n + i0 + values.len()];
-    match (dst.first_chunk_mut::<COL_BLOCK>(), values.first_chunk::<COL_BLOCK>()) {
+    match (
+        dst.first_chunk_mut::<COL_BLOCK>(),
+        values.first_chunk::<COL_BLOCK>(),
+    ) {
         (Some(d), Some(v)) if values.len() == COL_BLOCK => *d = *v,
         _ => dst.copy_from_slice(values),
     }
