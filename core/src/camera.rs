@@ -147,6 +147,22 @@ impl Camera {
         (all, self.model.param_count())
     }
 
+    /// Checks a camera built field by field: finite parameters and positive focal
+    /// lengths, else [`Error::InvalidIntrinsics`].
+    pub fn check(&self) -> Result<()> {
+        let finite = self
+            .focal
+            .iter()
+            .chain(&self.principal)
+            .chain(&self.distortion)
+            .all(|v| v.is_finite());
+        if finite && self.focal[0] > 0.0 && self.focal[1] > 0.0 {
+            Ok(())
+        } else {
+            Err(Error::InvalidIntrinsics)
+        }
+    }
+
     /// Mean focal length in pixels (to express normalised-plane errors in pixels).
     pub fn mean_focal(&self) -> f64 {
         0.5 * (self.focal[0] + self.focal[1])

@@ -3,6 +3,7 @@
 
 use core::fmt;
 
+use crate::localizer::Failure;
 use crate::weights::{ConfigField, TensorName, TensorPart};
 
 /// Which input an error refers to.
@@ -197,6 +198,11 @@ pub enum Error {
     },
     /// A view was matched before any query was encoded.
     QueryNotEncoded,
+    /// A valid query that the localizer could not localize.
+    LocalizationFailed {
+        /// Why.
+        reason: Failure,
+    },
 }
 
 /// Result with the core's [`Error`].
@@ -304,6 +310,7 @@ impl fmt::Display for Error {
                 write!(f, "model configuration {field:?} is not a valid value")
             }
             Error::QueryNotEncoded => write!(f, "no query encoded before matching a view"),
+            Error::LocalizationFailed { reason } => write!(f, "localization failed: {reason}"),
         }
     }
 }

@@ -10,7 +10,9 @@
 //! probability ([`classifier`]) -> RANSAC-PnP inlier ([`p3p`], [`ransac`], [`refine`]) ->
 //! pose of the query ([`pose`]). [`matcher`] runs the network on one query-view pair with
 //! the weights of a [`weights::Model`] blob. The database side is the geometric-only
-//! [`map`]: 3D points, database views and their poses.
+//! [`map`]: 3D points, database views and their poses. [`localizer`] runs the whole
+//! pipeline for one query against several views of a map. [`link`] serves it to a host
+//! over a byte stream (COBS-framed postcard messages).
 #![no_std]
 #![forbid(unsafe_code)]
 #![warn(missing_docs)]
@@ -23,6 +25,8 @@ pub mod camera;
 pub mod classifier;
 pub mod encoder;
 pub mod error;
+pub mod link;
+pub mod localizer;
 pub mod map;
 pub mod matcher;
 pub mod nn;
@@ -38,6 +42,10 @@ pub mod weights;
 
 pub use camera::Camera;
 pub use error::{Error, Result};
+pub use localizer::{
+    Clock, Correspondence, Failure, Localization, Localizer, LocalizerConfig, Query, ViewSelection,
+};
+pub use map::Map;
 pub use matcher::{MatchSet, Matcher, Observer, Stage};
 pub use pose::Pose;
 pub use ransac::{estimate_pose, PnpEstimate, PnpWorkspace, RansacConfig};

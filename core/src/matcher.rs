@@ -21,8 +21,11 @@ use crate::error::{Error, Input as Which, Result};
 use crate::nn::{l2_normalize_points, ROW_BLOCK};
 
 /// Rows of `N` values in the row scratch: per-row temporaries of the layers (a chunk of
-/// output rows waiting for their instance norm), Sinkhorn vectors, norms.
-pub const SCRATCH_ROWS: usize = 4 * ROW_BLOCK;
+/// output rows waiting for their instance norm), Sinkhorn vectors, norms. Sized by its
+/// largest user, the classifier: [`ROW_BLOCK`] rows for up to `2 N` matches (the
+/// mutual assignment's fallback). That also holds Sinkhorn's `6 N + 4` values (`N >= 2`)
+/// and self attention's `(1 + ROW_BLOCK) N`.
+pub const SCRATCH_ROWS: usize = 2 * ROW_BLOCK;
 use crate::sinkhorn::{
     cost_matrix, mutual_assignment, sinkhorn, Match, PlanScalar, SinkhornParams, Transport,
 };
@@ -145,8 +148,9 @@ pub struct Matcher<const N: usize, S: PlanScalar = f32> {
     fused: [f32; MAX_FEATURE_DIM * FUSE_BLOCK],
     /// Sinkhorn cost, `N x N` (rows 3D, columns 2D).
     plan: [[S; N]; N],
-    /// Sinkhorn potentials: `u` (`n3 + 1`) then `v` (`n2 + 1`).
-    potentials: [[f32; N]; 4],
+    /// Sinkhorn potentials: `u` (`n3 + 1`) then `v` (`n2 + 1`); `3 N >= 2 N + 2` for
+    /// `N >= 2`.
+    potentials: [[f32; N]; 3],
     graph2d: [Neighbours; N],
     graph3d: [Neighbours; N],
     nn12: [u16; N],
@@ -178,7 +182,7 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
             rows: [[0.0; N]; SCRATCH_ROWS],
             fused: [0.0; MAX_FEATURE_DIM * FUSE_BLOCK],
             plan: [[S::ZERO; N]; N],
-            potentials: [[0.0; N]; 4],
+            potentials: [[0.0; N]; 3],
             graph2d: [[0; crate::weights::MAX_KNN]; N],
             graph3d: [[0; crate::weights::MAX_KNN]; N],
             nn12: [0; N],
@@ -434,7 +438,7 @@ mod tests {
             let fused = d * FUSE_BLOCK * 4;
             let graphs = 2 * n * crate::weights::MAX_KNN * 2;
             let matches = 2 * n * 12 + 8 + 4 + 8;
-            let rest = 4 * n * 4 + 2 * n * 2 + 8 + core::mem::size_of::<ModelConfig>() + 8 + 8;
+            let rest = 3 * n * 4 + 2 * n * 2 + 8 + core::mem::size_of::<ModelConfig>() + 8 + 8;
             features + fused + n * n * plan + graphs + matches + rest
         }
         let exact = |bytes: usize, n: usize, plan: usize| {

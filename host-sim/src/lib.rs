@@ -20,3 +20,9 @@ pub mod synthetic;
 pub mod pnp;
 
 pub mod conform;
+
+pub mod demo;
+pub mod eval;
+
+pub mod device;
+pub mod firmware_data;

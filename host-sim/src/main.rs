@@ -23,6 +23,14 @@ enum Command {
     Pnp(gomatch_sim::pnp::Args),
     /// Run the matcher on a reference fixture and compare every stage with it.
     Conform(gomatch_sim::conform::Args),
+    /// Localize a few queries of a built-in synthetic scene end to end.
+    Demo(gomatch_sim::demo::Args),
+    /// Evaluate localization on a scene with the paper's protocol (AUC, pose errors).
+    Eval(gomatch_sim::eval::Args),
+    /// Drive a simulated device over its link (COBS/postcard) with synthetic queries.
+    Device(gomatch_sim::device::Args),
+    /// Write the firmware image's embedded map, query and ground truth.
+    FirmwareData(gomatch_sim::firmware_data::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -32,6 +40,10 @@ fn main() -> anyhow::Result<()> {
         Command::Map(args) => gomatch_sim::map::run(&args)?,
         Command::Pnp(args) => gomatch_sim::pnp::run(&args)?,
         Command::Conform(args) => gomatch_sim::conform::run(&args)?,
+        Command::Demo(args) => gomatch_sim::demo::run(&args)?,
+        Command::Eval(args) => gomatch_sim::eval::run(&args)?,
+        Command::Device(args) => gomatch_sim::device::run(&args)?,
+        Command::FirmwareData(args) => gomatch_sim::firmware_data::run(&args)?,
     }
     Ok(())
 }

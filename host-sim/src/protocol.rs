@@ -10,14 +10,17 @@
 //! - co-visible views: the `k` other images sharing the most 3D points with it, among those
 //!   whose overlap (shared points / points seen by the query) is at least `min_overlap`;
 //!   queries with fewer than `min_views` such views are dropped;
-//! - per view: the 3D points it observes (in front of it), at most `max_points` by a seeded
-//!   subsample, as bearing vectors in that view (paper eq. 1);
+//! - per view: the 3D points it observes, in the order the map stores them (the order of
+//!   the view's keypoints), those in front of it, at most `max_points` evenly spread over
+//!   that list (the core's [`view_point_bearings`], so evaluation sees exactly the points
+//!   the device matches), as bearing vectors in that view (paper eq. 1);
 //! - ground truth: the view's points projected with the true query pose onto the query's
 //!   normalised plane, matched to the keypoints by mutual nearest neighbours closer than
 //!   `gt_threshold`.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
+use gomatch::localizer::view_point_bearings;
 use gomatch::{Camera, Pose};
 use nalgebra::Vector3;
 use rand::SeedableRng;
@@ -44,7 +47,8 @@ pub struct ProtocolParams {
     pub gt_threshold: f64,
     /// Cap on query keypoints.
     pub max_keypoints: usize,
-    /// Cap on the 3D points of one view.
+    /// Cap on the 3D points of one view (evenly spread over those in front of it, as on
+    /// the device).
     pub max_points: usize,
     /// Queries sampled per scene.
     pub queries_per_scene: usize,
@@ -304,8 +308,9 @@ fn query_keypoints(image: &Image, camera: &Camera, params: &ProtocolParams) -> Q
     keypoints
 }
 
-/// The view's 3D points in front of it, capped by a seeded subsample, as bearing vectors
-/// in the view, with the ground truth against the query keypoints.
+/// The view's 3D points as the device selects them ([`view_point_bearings`]: in stored
+/// order, in front of the view, at most `max_points` evenly spread), as bearing vectors in
+/// the view, with the ground truth against the query keypoints.
 fn view_sample(
     scene: &Scene,
     query: &Image,
@@ -314,31 +319,20 @@ fn view_sample(
     params: &ProtocolParams,
 ) -> Option<ViewSample> {
     let image = scene.images.get(&view.image_id)?;
-    let visible: Vec<(PointId, Vector3<f64>, [f64; 2])> = observed_points(image)
-        .into_iter()
-        .filter_map(|id| {
-            let xyz = scene.points.get(&id)?.xyz;
-            let bearing = image.pose.bearing(&xyz, 0).ok()?;
-            Some((id, xyz, bearing))
-        })
-        .collect();
-    let seed = derive_seed(
-        params.seed,
-        &[u64::from(query.id), u64::from(view.image_id)],
-    );
-    let mut rng = Pcg64Mcg::seed_from_u64(seed);
-    let mut chosen = subsample(&mut rng, visible.len(), params.max_points);
-    chosen.sort_unstable();
+    let observed = observed_points(image).into_iter().filter_map(|id| {
+        let xyz = scene.points.get(&id)?.xyz;
+        Some(((id, xyz), [xyz.x, xyz.y, xyz.z]))
+    });
+    let chosen = view_point_bearings(image.pose, observed, params.max_points);
     let mut sample = ViewSample {
         image_id: view.image_id,
         overlap: view.overlap,
-        point_ids: Vec::with_capacity(chosen.len()),
-        xyz: Vec::with_capacity(chosen.len()),
-        bearings: Vec::with_capacity(chosen.len()),
+        point_ids: Vec::new(),
+        xyz: Vec::new(),
+        bearings: Vec::new(),
         gt_pairs: Vec::new(),
     };
-    for i in chosen {
-        let (id, xyz, bearing) = visible[i];
+    for ((id, xyz), bearing) in chosen {
         sample.point_ids.push(id);
         sample.xyz.push(xyz);
         sample.bearings.push(bearing);

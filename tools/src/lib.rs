@@ -4,5 +4,6 @@
 pub mod agreement;
 pub mod calibration;
 pub mod convert;
+pub mod mem_report;
 pub mod quantize;
 pub mod sensitivity;

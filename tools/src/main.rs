@@ -2,6 +2,11 @@
 
 use clap::{Parser, Subcommand};
 
+/// Counts heap allocations for `mem-report` (otherwise the system allocator, unchanged).
+#[global_allocator]
+static ALLOCATOR: gomatch_tools::mem_report::CountingAllocator =
+    gomatch_tools::mem_report::CountingAllocator;
+
 /// Tools around the GoMatch core.
 #[derive(Parser)]
 #[command(version, about)]
@@ -20,6 +25,8 @@ enum Command {
     Agreement(gomatch_tools::agreement::Args),
     /// Per-tensor int8 sensitivity of the matches.
     Sensitivity(gomatch_tools::sensitivity::Args),
+    /// RAM, stack, heap and flash per capacity, view count and precision.
+    MemReport(gomatch_tools::mem_report::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -28,6 +35,7 @@ fn main() -> anyhow::Result<()> {
         Command::Convert(args) => gomatch_tools::convert::run(&args)?,
         Command::Agreement(args) => gomatch_tools::agreement::run(&args)?,
         Command::Sensitivity(args) => gomatch_tools::sensitivity::run(&args)?,
+        Command::MemReport(args) => gomatch_tools::mem_report::run(&args)?,
     }
     Ok(())
 }

@@ -1,0 +1,1072 @@
+//! The localization pipeline a user calls (paper sec. 3 and 4.1): query keypoints in
+//! pixels and their camera, a geometric-only [`Map`], a set of co-visible database views,
+//! and out comes the query pose.
+//!
+//! ```text
+//! pixels --camera--> bearings --encode once--> query features
+//! for each selected view (streamed, one at a time):
+//!     its map points in front of it (first N) --eq. 1--> bearings
+//!     --> attention, Sinkhorn, classifier --> matches above the threshold
+//!     --> merged: per query keypoint its best match across views
+//! merged --> per 3D point its best keypoint --> RANSAC-PnP + LM --> pose
+//! ```
+//!
+//! [`Localizer`] owns every buffer (the [`Matcher`], the [`PnpWorkspace`] and the merge
+//! tables), so memory is fixed by the capacity `N` whatever the number of views; it is
+//! built by a `const fn` and belongs in a `static`. The core has no clock: stage timings
+//! come from an optional caller-provided [`Clock`] and go, with the match counts, to the
+//! [`log`] crate and into the returned [`Localization`].
+
+use core::fmt;
+
+use serde::{Deserialize, Serialize};
+
+use crate::camera::Camera;
+use crate::error::{Error, Input, Result};
+use crate::map::Map;
+use crate::matcher::Matcher;
+use crate::pose::Pose;
+use crate::ransac::{estimate_pose, PnpWorkspace, RansacConfig, MIN_CORRESPONDENCES};
+use crate::sinkhorn::PlanScalar;
+use crate::weights::Model;
+
+/// Most database views one query is matched against (the paper's largest `k`).
+pub const MAX_VIEWS: usize = 10;
+
+/// Bearing vector `(x/z, y/z)` of a world point in a view (paper eq. 1), when the point
+/// can be matched from it: in front of the camera, with coordinates representable in
+/// `f32` (the matcher's input type).
+pub fn view_bearing(view_pose: &Pose, point: [f64; 3]) -> Option<[f64; 2]> {
+    let [x, y, z] = point;
+    let bearing = view_pose
+        .bearing(&nalgebra::Vector3::new(x, y, z), 0)
+        .ok()?;
+    bearing
+        .iter()
+        .all(|&v| (v as f32).is_finite())
+        .then_some(bearing)
+}
+
+/// The database points a view contributes to matching, the one rule shared by the device
+/// and the host's evaluation protocol: of the view's observed points in stored order,
+/// those with a [`view_bearing`]; when `M` of them exceed `capacity` (`N`), the ones at
+/// the evenly spaced positions `floor(i M / N)`, `i = 0..N`. The paper keeps "up to its
+/// first 1024", whose database keypoints came from a detector capped at its 1024
+/// strongest; a map's stored order carries no such ranking (a COLMAP image lists its
+/// keypoints in extraction order), so an even spread over the list keeps the sample
+/// unbiased. Yields each point's tag and its bearing. `points` is traversed twice (count,
+/// then selection).
+pub fn view_point_bearings<T, I>(
+    view_pose: Pose,
+    points: I,
+    capacity: usize,
+) -> impl Iterator<Item = (T, [f64; 2])>
+where
+    I: Iterator<Item = (T, [f64; 3])> + Clone,
+{
+    let available = points
+        .clone()
+        .filter(|(_, p)| view_bearing(&view_pose, *p).is_some())
+        .count();
+    let (available, capacity) = (available as u64, capacity as u64);
+    let (mut position, mut kept) = (0u64, 0u64);
+    points
+        .filter_map(move |(tag, p)| {
+            let bearing = view_bearing(&view_pose, p)?;
+            let here = position;
+            position += 1;
+            let wanted = available <= capacity || here == kept * available / capacity.max(1);
+            if wanted {
+                kept += 1;
+            }
+            wanted.then_some((tag, bearing))
+        })
+        .take(capacity as usize)
+}
+
+/// A query: keypoints in pixels (at most the localizer's capacity; the caller caps) and
+/// the calibrated camera that took the image.
+#[derive(Debug, Clone, Copy)]
+pub struct Query<'a> {
+    /// Keypoint positions in pixels (COLMAP convention: origin top-left, y down).
+    pub keypoints: &'a [[f32; 2]],
+    /// The query camera.
+    pub camera: Camera,
+}
+
+/// Which database views the query is matched against.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ViewSelection<'a> {
+    /// Views by image id, in the given order, e.g. from an image-retrieval step
+    /// (at most [`MAX_VIEWS`]).
+    ImageIds(&'a [u32]),
+    /// The `k` views nearest to a coarse prior pose ([`Map::views_near`]): views looking
+    /// within `max_angle_deg` of the prior first, each group by camera-centre distance.
+    NearPrior {
+        /// The coarse prior pose of the query.
+        prior: Pose,
+        /// Number of views, at most [`MAX_VIEWS`].
+        k: usize,
+        /// Viewing-direction cone of the first group, in degrees.
+        max_angle_deg: f64,
+    },
+}
+
+/// Settings of [`Localizer::localize`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LocalizerConfig {
+    /// RANSAC-PnP settings (threshold on the normalised image plane).
+    pub ransac: RansacConfig,
+    /// Fewest merged matches worth running the pose solver on (at least
+    /// [`MIN_CORRESPONDENCES`]).
+    pub min_matches: usize,
+    /// Fewest inliers of an accepted pose (at least [`MIN_CORRESPONDENCES`]: a P3P sample
+    /// always has 3, so a pose must be confirmed by at least one more correspondence).
+    pub min_inliers: usize,
+}
+
+impl Default for LocalizerConfig {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl LocalizerConfig {
+    /// [`RansacConfig::new`], `min_matches` and `min_inliers` = [`MIN_CORRESPONDENCES`].
+    pub const fn new() -> Self {
+        Self {
+            ransac: RansacConfig::new(),
+            min_matches: MIN_CORRESPONDENCES,
+            min_inliers: MIN_CORRESPONDENCES,
+        }
+    }
+}
+
+/// A monotonic clock the caller provides for stage timings (the core has none).
+pub trait Clock {
+    /// Microseconds since an arbitrary, fixed origin.
+    fn now_us(&self) -> u64;
+}
+
+/// Why a valid query could not be localized.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Failure {
+    /// Fewer query keypoints than the matcher needs.
+    TooFewKeypoints {
+        /// The matcher's minimum.
+        needed: usize,
+        /// Keypoints given.
+        found: usize,
+    },
+    /// No view was selected, or none had enough points in front of it to be matched.
+    NoViews {
+        /// Selected views skipped for having too few points.
+        skipped: usize,
+    },
+    /// Fewer merged matches than `min_matches`.
+    TooFewMatches {
+        /// The configured minimum.
+        needed: usize,
+        /// Merged matches found.
+        found: usize,
+    },
+    /// The best pose has fewer inliers than `min_inliers`.
+    TooFewInliers {
+        /// The configured minimum.
+        needed: usize,
+        /// Inliers of the best pose.
+        found: usize,
+    },
+    /// The matched 3D points or keypoints are coincident or collinear.
+    DegenerateMatches,
+    /// RANSAC found no pose hypothesis.
+    NoPoseFound,
+}
+
+impl fmt::Display for Failure {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match *self {
+            Failure::TooFewKeypoints { needed, found } => {
+                write!(f, "too few keypoints: {found}, the matcher needs {needed}")
+            }
+            Failure::NoViews { skipped } => {
+                write!(f, "no view to match ({skipped} skipped for too few points)")
+            }
+            Failure::TooFewMatches { needed, found } => {
+                write!(f, "too few matches: {found}, at least {needed} needed")
+            }
+            Failure::TooFewInliers { needed, found } => {
+                write!(f, "too few inliers: {found}, at least {needed} needed")
+            }
+            Failure::DegenerateMatches => write!(f, "degenerate matches (collinear points)"),
+            Failure::NoPoseFound => write!(f, "RANSAC found no pose"),
+        }
+    }
+}
+
+/// Match counts per stage, summed over the views.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct MatchCounts {
+    /// Matches of the mutual assignment (with the reference's fallback).
+    pub mutual: usize,
+    /// Those the classifier accepts (probability above the model's threshold).
+    pub classified: usize,
+    /// After merging the views: each query keypoint and each 3D point at most once.
+    pub merged: usize,
+    /// RANSAC-PnP inliers of the final pose.
+    pub inliers: usize,
+}
+
+/// Stage timings in microseconds, from the caller's [`Clock`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct StageTimings {
+    /// Input checks, keypoint bearings and view selection.
+    pub prepare_us: u64,
+    /// Query encoder (once).
+    pub encode_us: u64,
+    /// Point gathering and matching of all views.
+    pub match_us: u64,
+    /// Merging the views' matches.
+    pub merge_us: u64,
+    /// RANSAC-PnP and refinement.
+    pub pose_us: u64,
+    /// The whole call.
+    pub total_us: u64,
+}
+
+/// The outcome of one [`Localizer::localize`] call.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Localization {
+    /// The world-to-camera pose of the query, or why there is none.
+    pub outcome: core::result::Result<Pose, Failure>,
+    /// Match counts per stage.
+    pub counts: MatchCounts,
+    /// Views matched.
+    pub views_used: usize,
+    /// Selected views skipped for having fewer points in front of them than the matcher
+    /// needs.
+    pub views_skipped: usize,
+    /// RANSAC minimal samples drawn (0 when the solver did not run).
+    pub ransac_iterations: u32,
+    /// Stage timings, when a clock was given.
+    pub timings: Option<StageTimings>,
+}
+
+impl Localization {
+    /// The pose, or the failure as an [`Error::LocalizationFailed`].
+    pub fn pose(&self) -> Result<Pose> {
+        self.outcome
+            .map_err(|reason| Error::LocalizationFailed { reason })
+    }
+
+    fn failed(reason: Failure) -> Self {
+        Self {
+            outcome: Err(reason),
+            counts: MatchCounts::default(),
+            views_used: 0,
+            views_skipped: 0,
+            ransac_iterations: 0,
+            timings: None,
+        }
+    }
+}
+
+/// One merged 2D-3D correspondence.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Correspondence {
+    /// Index of the query keypoint.
+    pub keypoint: u16,
+    /// Index of the 3D point in the map.
+    pub point: u32,
+    /// Best classifier probability of the pair across views.
+    pub probability: f32,
+    /// Inlier of the final pose.
+    pub inlier: bool,
+}
+
+impl Correspondence {
+    const EMPTY: Self = Correspondence {
+        keypoint: 0,
+        point: 0,
+        probability: 0.0,
+        inlier: false,
+    };
+}
+
+/// Workspace and pipeline of the localizer for up to `N` query keypoints and `N` points
+/// per view, with the Sinkhorn cost stored as `S` (`f32` or `half::f16`).
+///
+/// Besides the [`Matcher`] and the [`PnpWorkspace`], per slot: one bearing buffer (the
+/// query's while it is encoded, then each view's in turn), the current view's map
+/// indices, one correspondence table (per keypoint its best match while the views are
+/// matched, then compacted by the merge) and the pose solver's input. The keypoints'
+/// `f64` bearings are recomputed from the query's pixels for the merged ones only.
+pub struct Localizer<const N: usize, S: PlanScalar = f32> {
+    matcher: Matcher<N, S>,
+    pnp: PnpWorkspace<N>,
+    /// Bearings given to the network: the query's until it is encoded, then the current
+    /// view's points.
+    network_input: [[f32; 2]; N],
+    /// Map indices of the current view's points, parallel to `network_input`.
+    view_points: [u32; N],
+    /// While matching: per query keypoint its best accepted match so far
+    /// (`probability` = [`UNMATCHED`] when none). After the merge: the correspondences
+    /// of the last call, by keypoint.
+    merged: [Correspondence; N],
+    merged_len: usize,
+    /// Pose solver input, parallel to `merged`.
+    bearings: [[f64; 2]; N],
+    points: [[f64; 3]; N],
+}
+
+/// Probability of a keypoint without an accepted match while the views are matched. A
+/// match is accepted when its probability is above the model's (finite) threshold, so it
+/// is never `-inf`.
+const UNMATCHED: f32 = f32::NEG_INFINITY;
+
+impl<const N: usize, S: PlanScalar> Default for Localizer<N, S> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Reads the caller's clock, or 0 without one.
+fn now(clock: Option<&dyn Clock>) -> u64 {
+    clock.map_or(0, |c| c.now_us())
+}
+
+impl<const N: usize, S: PlanScalar> Localizer<N, S> {
+    /// Size of the workspace in bytes.
+    pub const BYTES: usize = core::mem::size_of::<Self>();
+
+    /// An empty workspace; all-zero, so a `static` lands in `.bss`.
+    pub const fn new() -> Self {
+        Localizer {
+            matcher: Matcher::new(),
+            pnp: PnpWorkspace::new(),
+            network_input: [[0.0; 2]; N],
+            view_points: [0; N],
+            merged: [Correspondence::EMPTY; N],
+            merged_len: 0,
+            bearings: [[0.0; 2]; N],
+            points: [[0.0; 3]; N],
+        }
+    }
+
+    /// The merged correspondences of the last [`Localizer::localize`] call, by keypoint,
+    /// with their inlier flags (all `false` when no pose was found).
+    pub fn correspondences(&self) -> &[Correspondence] {
+        self.merged.get(..self.merged_len).unwrap_or(&[])
+    }
+
+    /// The inlier correspondences of the last call.
+    pub fn inliers(&self) -> impl Iterator<Item = &Correspondence> {
+        self.correspondences().iter().filter(|c| c.inlier)
+    }
+
+    /// Localizes a query against the map (paper sec. 4.1): encodes the keypoints once,
+    /// matches them against each selected view's points as bearing vectors (eq. 1),
+    /// merges the classifier-accepted matches, and estimates the pose with RANSAC-PnP.
+    ///
+    /// Invalid input is an `Err` and nothing runs: a camera with non-finite or
+    /// non-positive intrinsics ([`Error::InvalidIntrinsics`]), more keypoints than `N`
+    /// ([`Error::CapacityExceeded`]), a non-finite keypoint ([`Error::NonFinite`] with its
+    /// index) or one that cannot be undistorted, more than [`MAX_VIEWS`] views, an unknown
+    /// image id ([`Error::MapUnknownImage`]), a non-finite prior, an invalid configuration
+    /// ([`Error::InvalidConfig`]). A valid query that cannot be localized is an `Ok`
+    /// whose [`Localization::outcome`] holds the [`Failure`]. Nothing passed is modified;
+    /// the result depends only on the inputs (not on earlier calls).
+    pub fn localize(
+        &mut self,
+        model: &Model<'_>,
+        map: &Map<'_>,
+        query: &Query<'_>,
+        views: ViewSelection<'_>,
+        config: &LocalizerConfig,
+        clock: Option<&dyn Clock>,
+    ) -> Result<Localization> {
+        let start = now(clock);
+        self.merged_len = 0;
+        check_config(config)?;
+        self.set_query(query)?;
+        let selected = select_views(map, views)?;
+        let n = query.keypoints.len();
+        let prepared = now(clock);
+        let needed = self.matcher.min_points();
+        if n < needed {
+            return Ok(Localization::failed(Failure::TooFewKeypoints {
+                needed,
+                found: n,
+            }));
+        }
+        if selected.is_empty() {
+            return Ok(Localization::failed(Failure::NoViews { skipped: 0 }));
+        }
+        self.matcher
+            .encode_query(model, self.network_input.get(..n).unwrap_or(&[]))?;
+        let encoded = now(clock);
+
+        self.clear_matches(n);
+        let mut counts = MatchCounts::default();
+        let (mut used, mut skipped) = (0, 0);
+        for &view in &selected {
+            match self.match_view(model, map, view as usize, &mut counts)? {
+                true => used += 1,
+                false => skipped += 1,
+            }
+        }
+        let matched = now(clock);
+        self.merge(map, query, n)?;
+        counts.merged = self.merged_len;
+        let merged = now(clock);
+
+        let mut localization = Localization {
+            outcome: Err(Failure::NoViews { skipped }),
+            counts,
+            views_used: used,
+            views_skipped: skipped,
+            ransac_iterations: 0,
+            timings: None,
+        };
+        if used > 0 {
+            localization.outcome = self.solve(config, &mut localization)?;
+        }
+        let done = now(clock);
+        if clock.is_some() {
+            localization.timings = Some(StageTimings {
+                prepare_us: prepared.saturating_sub(start),
+                encode_us: encoded.saturating_sub(prepared),
+                match_us: matched.saturating_sub(encoded),
+                merge_us: merged.saturating_sub(matched),
+                pose_us: done.saturating_sub(merged),
+                total_us: done.saturating_sub(start),
+            });
+        }
+        log_summary(&localization, n);
+        Ok(localization)
+    }
+
+    /// Checks the camera and keypoints and converts them to bearing vectors for the
+    /// network.
+    fn set_query(&mut self, query: &Query<'_>) -> Result<()> {
+        query.camera.check()?;
+        let n = query.keypoints.len();
+        if n > N {
+            return Err(Error::CapacityExceeded {
+                capacity: N,
+                requested: n,
+            });
+        }
+        for (index, (pixel, bearing)) in query
+            .keypoints
+            .iter()
+            .zip(self.network_input.iter_mut())
+            .enumerate()
+        {
+            let b = keypoint_bearing(&query.camera, *pixel, index)?;
+            *bearing = [b[0] as f32, b[1] as f32];
+        }
+        Ok(())
+    }
+
+    /// Marks the first `n` keypoints as having no accepted match yet.
+    fn clear_matches(&mut self, n: usize) {
+        for (keypoint, slot) in self.merged.iter_mut().take(n).enumerate() {
+            *slot = Correspondence {
+                keypoint: keypoint as u16,
+                probability: UNMATCHED,
+                ..Correspondence::EMPTY
+            };
+        }
+    }
+
+    /// Matches the encoded query against one view and keeps, per keypoint, its best
+    /// accepted match. `false` when the view has too few points in front of it.
+    fn match_view(
+        &mut self,
+        model: &Model<'_>,
+        map: &Map<'_>,
+        view: usize,
+        counts: &mut MatchCounts,
+    ) -> Result<bool> {
+        let pose = map.view(view)?.pose;
+        let observed = map.view_points(view)?;
+        let mut len = 0;
+        // The map was validated when read, so every index and point resolves.
+        let points = (0..observed.len()).filter_map(|j| {
+            let index = observed.get(j)?;
+            let p = map.point(index as usize).ok()?;
+            Some((index, p.map(f64::from)))
+        });
+        let slots = self
+            .network_input
+            .iter_mut()
+            .zip(self.view_points.iter_mut());
+        for ((index, bearing), (slot, point)) in view_point_bearings(pose, points, N).zip(slots) {
+            *slot = [bearing[0] as f32, bearing[1] as f32];
+            *point = index;
+            len += 1;
+        }
+        let db = self.network_input.get(..len).unwrap_or(&[]);
+        if len < self.matcher.min_points() {
+            log::debug!("map view {view}: {len} points in front, skipped");
+            return Ok(false);
+        }
+        let set = self.matcher.match_view(model, db)?;
+        counts.mutual += set.len();
+        let mut accepted = 0;
+        for m in set.inliers() {
+            accepted += 1;
+            let (Some(best), Some(&point)) = (
+                self.merged.get_mut(usize::from(m.i2d)),
+                self.view_points.get(usize::from(m.i3d)),
+            ) else {
+                continue;
+            };
+            if m.probability > best.probability {
+                (best.point, best.probability) = (point, m.probability);
+            }
+        }
+        counts.classified += accepted;
+        log::debug!(
+            "map view {view}: {len} points, {} mutual matches, {accepted} accepted, {} Sinkhorn iterations",
+            set.len(),
+            set.sinkhorn_iterations()
+        );
+        Ok(true)
+    }
+
+    /// Turns the per-keypoint best matches into correspondences where each 3D point also
+    /// appears once (its most probable keypoint; ties to the lower keypoint index), sorted
+    /// by keypoint, with the pose solver's inputs beside them: the keypoint's bearing,
+    /// recomputed in `f64` from its pixel, and the map point.
+    fn merge(&mut self, map: &Map<'_>, query: &Query<'_>, n: usize) -> Result<()> {
+        let mut len = 0;
+        for i in 0..n.min(N) {
+            if self.merged[i].probability != UNMATCHED {
+                self.merged[len] = self.merged[i];
+                len += 1;
+            }
+        }
+        let merged = self.merged.get_mut(..len).unwrap_or(&mut []);
+        merged.sort_unstable_by(|a, b| {
+            (a.point.cmp(&b.point))
+                .then(b.probability.total_cmp(&a.probability))
+                .then(a.keypoint.cmp(&b.keypoint))
+        });
+        let mut kept = 0;
+        for i in 0..merged.len() {
+            if kept == 0 || merged[i].point != merged[kept - 1].point {
+                merged[kept] = merged[i];
+                kept += 1;
+            }
+        }
+        let merged = &mut merged[..kept];
+        merged.sort_unstable_by_key(|c| c.keypoint);
+        for (c, (bearing, point)) in merged
+            .iter()
+            .zip(self.bearings.iter_mut().zip(self.points.iter_mut()))
+        {
+            let index = usize::from(c.keypoint);
+            let pixel = query.keypoints.get(index).copied().unwrap_or([f32::NAN; 2]);
+            *bearing = keypoint_bearing(&query.camera, pixel, index)?;
+            *point = map.point(c.point as usize)?.map(f64::from);
+        }
+        self.merged_len = kept;
+        Ok(())
+    }
+
+    /// RANSAC-PnP + LM on the merged correspondences; marks the inliers of an accepted
+    /// pose.
+    fn solve(
+        &mut self,
+        config: &LocalizerConfig,
+        localization: &mut Localization,
+    ) -> Result<core::result::Result<Pose, Failure>> {
+        let len = self.merged_len;
+        if len < config.min_matches {
+            return Ok(Err(Failure::TooFewMatches {
+                needed: config.min_matches,
+                found: len,
+            }));
+        }
+        let bearings = self.bearings.get(..len).unwrap_or(&[]);
+        let points = self.points.get(..len).unwrap_or(&[]);
+        match estimate_pose(bearings, points, &config.ransac, &mut self.pnp) {
+            Ok(estimate) => {
+                localization.counts.inliers = estimate.inlier_count;
+                localization.ransac_iterations = estimate.iterations;
+                if estimate.inlier_count < config.min_inliers {
+                    return Ok(Err(Failure::TooFewInliers {
+                        needed: config.min_inliers,
+                        found: estimate.inlier_count,
+                    }));
+                }
+                for (c, &inlier) in self.merged.iter_mut().zip(estimate.inlier_mask) {
+                    c.inlier = inlier;
+                }
+                Ok(Ok(estimate.pose))
+            }
+            Err(Error::NoPoseFound) => Ok(Err(Failure::NoPoseFound)),
+            Err(Error::DegenerateConfiguration) => Ok(Err(Failure::DegenerateMatches)),
+            Err(other) => Err(other),
+        }
+    }
+}
+
+/// Bearing vector of a query keypoint; a non-finite pixel, or one whose `f32` bearing
+/// would not be finite, is [`Error::NonFinite`] with its index.
+fn keypoint_bearing(camera: &Camera, pixel: [f32; 2], index: usize) -> Result<[f64; 2]> {
+    let non_finite = Error::NonFinite {
+        input: Input::Keypoints,
+        index,
+    };
+    if !pixel.iter().all(|v| v.is_finite()) {
+        return Err(non_finite);
+    }
+    let b = camera.pixel_to_bearing([f64::from(pixel[0]), f64::from(pixel[1])])?;
+    if !b.iter().all(|&v| (v as f32).is_finite()) {
+        return Err(non_finite);
+    }
+    Ok(b)
+}
+
+/// Checks the settings before any work.
+fn check_config(config: &LocalizerConfig) -> Result<()> {
+    if config.min_matches < MIN_CORRESPONDENCES {
+        return Err(Error::InvalidConfig {
+            parameter: "min_matches",
+        });
+    }
+    if config.min_inliers < MIN_CORRESPONDENCES {
+        return Err(Error::InvalidConfig {
+            parameter: "min_inliers",
+        });
+    }
+    let ransac = &config.ransac;
+    if ransac.max_iterations == 0 {
+        return Err(Error::InvalidConfig {
+            parameter: "max_iterations",
+        });
+    }
+    if !(ransac.threshold > 0.0 && ransac.threshold.is_finite()) {
+        return Err(Error::InvalidConfig {
+            parameter: "threshold",
+        });
+    }
+    if !(ransac.confidence > 0.0 && ransac.confidence < 1.0) {
+        return Err(Error::InvalidConfig {
+            parameter: "confidence",
+        });
+    }
+    Ok(())
+}
+
+/// Map view indices of the selection, at most [`MAX_VIEWS`].
+fn select_views(map: &Map<'_>, views: ViewSelection<'_>) -> Result<heapless::Vec<u32, MAX_VIEWS>> {
+    match views {
+        ViewSelection::ImageIds(ids) => map.views_by_image_id::<MAX_VIEWS>(ids),
+        ViewSelection::NearPrior {
+            prior,
+            k,
+            max_angle_deg,
+        } => {
+            if k > MAX_VIEWS {
+                return Err(Error::CapacityExceeded {
+                    capacity: MAX_VIEWS,
+                    requested: k,
+                });
+            }
+            if !max_angle_deg.is_finite() {
+                return Err(Error::InvalidConfig {
+                    parameter: "max_angle_deg",
+                });
+            }
+            let mut near = map.views_near::<MAX_VIEWS>(&prior, max_angle_deg)?;
+            near.truncate(k);
+            Ok(near)
+        }
+    }
+}
+
+fn log_summary(l: &Localization, keypoints: usize) {
+    let c = &l.counts;
+    match &l.outcome {
+        Ok(_) => log::info!(
+            "localized: {keypoints} keypoints, {} views ({} skipped), matches {} mutual / {} classified / {} merged / {} inliers, {} RANSAC iterations",
+            l.views_used, l.views_skipped, c.mutual, c.classified, c.merged, c.inliers, l.ransac_iterations
+        ),
+        Err(reason) => log::info!(
+            "not localized ({reason}): {keypoints} keypoints, {} views, matches {} mutual / {} classified / {} merged",
+            l.views_used, c.mutual, c.classified, c.merged
+        ),
+    }
+    if let Some(t) = &l.timings {
+        log::debug!(
+            "timings (us): prepare {} encode {} match {} merge {} pose {} total {}",
+            t.prepare_us,
+            t.encode_us,
+            t.match_us,
+            t.merge_us,
+            t.pose_us,
+            t.total_us
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+
+    use std::sync::Mutex;
+    use std::vec::Vec;
+
+    use nalgebra::{Rotation3, Vector3};
+
+    use super::*;
+    use crate::camera::CameraModel;
+    use crate::map::{encode, encoded_len, MapViewEntry};
+    use crate::weights::tests_support::{blob, TINY};
+
+    const CAP: usize = 64;
+    static LOCALIZER: Mutex<Localizer<CAP>> = Mutex::new(Localizer::new());
+
+    fn camera() -> Camera {
+        Camera::from_colmap(CameraModel::SimplePinhole, 640, 480, &[500.0, 320.0, 240.0])
+            .expect("valid")
+    }
+
+    fn pose(x: f64) -> Pose {
+        Pose::new(
+            Rotation3::from_euler_angles(0.0, 0.05 * x, 0.0),
+            Vector3::new(x, 0.0, 0.0),
+        )
+    }
+
+    /// 80 points on a wavy surface about 5 units in front of three views (image ids 10,
+    /// 20, 30); view 30 observes only the first 8.
+    struct Fixture {
+        blob: Vec<u8>,
+        points: Vec<[f32; 3]>,
+    }
+
+    fn fixture() -> Fixture {
+        let points: Vec<[f32; 3]> = (0..80)
+            .map(|i| {
+                let (u, v) = ((i % 10) as f32 * 0.3 - 1.35, (i / 10) as f32 * 0.3 - 1.05);
+                [u, v, 5.0 + 0.3 * libm::sinf(3.0 * u + 2.0 * v)]
+            })
+            .collect();
+        let all: Vec<u32> = (0..80).collect();
+        let few: Vec<u32> = (0..8).collect();
+        let views = [
+            MapViewEntry {
+                image_id: 10,
+                camera_index: 0,
+                pose: pose(-0.3),
+                points: &all,
+            },
+            MapViewEntry {
+                image_id: 20,
+                camera_index: 0,
+                pose: pose(0.3),
+                points: &all,
+            },
+            MapViewEntry {
+                image_id: 30,
+                camera_index: 0,
+                pose: pose(0.0),
+                points: &few,
+            },
+        ];
+        let mut blob = std::vec![0u8; encoded_len(points.len(), 1, &views)];
+        let len = encode(&points, &[camera()], &views, &mut blob).expect("encodes");
+        blob.truncate(len);
+        Fixture { blob, points }
+    }
+
+    /// The fixture's points seen from the query pose, as pixels.
+    fn keypoints(f: &Fixture, truth: &Pose) -> Vec<[f32; 2]> {
+        f.points
+            .iter()
+            .map(|p| {
+                let x = Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+                let b = truth.bearing(&x, 0).expect("in front");
+                let px = camera().bearing_to_pixel(b).expect("projects");
+                [px[0] as f32, px[1] as f32]
+            })
+            .collect()
+    }
+
+    fn with_model<R>(f: impl FnOnce(&Model<'_>) -> R) -> R {
+        let mut buf = std::vec![0u8; 64 * 1024];
+        let len = blob(&TINY, 5, &mut buf);
+        let model = Model::from_bytes(&buf[..len]).expect("valid blob");
+        f(&model)
+    }
+
+    #[test]
+    fn workspace_is_the_matcher_the_pose_solver_and_the_merge_tables() {
+        // Per slot: network input bearing (f32 x 2), view point index, correspondence
+        // (u16, u32, f32, bool), pose solver input (f64 x 2 + f64 x 3).
+        let merge = CAP * (2 * 4 + 4 + 12 + 2 * 8 + 3 * 8) + 8;
+        let expected = Matcher::<CAP, f32>::BYTES + PnpWorkspace::<CAP>::BYTES + merge;
+        let bytes = Localizer::<CAP, f32>::BYTES;
+        assert!(
+            bytes >= expected && bytes <= expected + 16,
+            "{bytes} vs {expected}"
+        );
+        // The memory goals: 1 MiB at 256 keypoints, 6 MiB at 1024, f16 Sinkhorn cost.
+        const { assert!(Localizer::<256, half::f16>::BYTES <= 1 << 20) };
+        const { assert!(Localizer::<1024, half::f16>::BYTES <= 6 << 20) };
+    }
+
+    #[test]
+    fn bad_queries_and_selections_are_typed_errors() {
+        let f = fixture();
+        let map = Map::from_bytes(&f.blob).expect("valid map");
+        let config = LocalizerConfig::new();
+        let good = keypoints(&f, &pose(0.1));
+        with_model(|model| {
+            let mut l = LOCALIZER.lock().expect("lock");
+            let mut run = |keypoints: &[[f32; 2]], camera: Camera, views: ViewSelection<'_>| {
+                let query = Query { keypoints, camera };
+                l.localize(model, &map, &query, views, &config, None)
+                    .map(|_| ())
+            };
+            let ids = ViewSelection::ImageIds(&[10, 20]);
+            let mut nan = good[..CAP].to_vec();
+            nan[5][1] = f32::NAN;
+            assert_eq!(
+                run(&nan, camera(), ids),
+                Err(Error::NonFinite {
+                    input: Input::Keypoints,
+                    index: 5
+                })
+            );
+            assert_eq!(
+                run(&good, camera(), ids),
+                Err(Error::CapacityExceeded {
+                    capacity: CAP,
+                    requested: 80
+                })
+            );
+            let degenerate = Camera {
+                focal: [0.0, 500.0],
+                ..camera()
+            };
+            assert_eq!(
+                run(&good[..20], degenerate, ids),
+                Err(Error::InvalidIntrinsics)
+            );
+            assert_eq!(
+                run(&good[..20], camera(), ViewSelection::ImageIds(&[10, 11])),
+                Err(Error::MapUnknownImage { image_id: 11 })
+            );
+            assert_eq!(
+                run(&good[..20], camera(), ViewSelection::ImageIds(&[10; 11])),
+                Err(Error::CapacityExceeded {
+                    capacity: MAX_VIEWS,
+                    requested: 11
+                })
+            );
+            let near = |k| ViewSelection::NearPrior {
+                prior: pose(0.0),
+                k,
+                max_angle_deg: 30.0,
+            };
+            assert_eq!(
+                run(&good[..20], camera(), near(11)),
+                Err(Error::CapacityExceeded {
+                    capacity: MAX_VIEWS,
+                    requested: 11
+                })
+            );
+        });
+    }
+
+    #[test]
+    fn unlocalizable_queries_report_a_failure_with_their_counts() {
+        let f = fixture();
+        let map = Map::from_bytes(&f.blob).expect("valid map");
+        let kp = keypoints(&f, &pose(0.1));
+        with_model(|model| {
+            let mut l = LOCALIZER.lock().expect("lock");
+            let mut run = |n: usize, views: ViewSelection<'_>| {
+                let query = Query {
+                    keypoints: &kp[..n],
+                    camera: camera(),
+                };
+                let config = LocalizerConfig::new();
+                l.localize(model, &map, &query, views, &config, None)
+                    .expect("valid input")
+            };
+            let few = run(9, ViewSelection::ImageIds(&[10]));
+            assert_eq!(
+                few.outcome,
+                Err(Failure::TooFewKeypoints {
+                    needed: 10,
+                    found: 9
+                })
+            );
+            assert_eq!(
+                few.pose(),
+                Err(Error::LocalizationFailed {
+                    reason: Failure::TooFewKeypoints {
+                        needed: 10,
+                        found: 9
+                    }
+                })
+            );
+            let none = run(40, ViewSelection::ImageIds(&[]));
+            assert_eq!(none.outcome, Err(Failure::NoViews { skipped: 0 }));
+            // View 30 sees 8 points, fewer than the matcher's 10.
+            let skipped = run(40, ViewSelection::ImageIds(&[30]));
+            assert_eq!(skipped.outcome, Err(Failure::NoViews { skipped: 1 }));
+            assert_eq!((skipped.views_used, skipped.views_skipped), (0, 1));
+        });
+    }
+
+    #[test]
+    fn localize_is_deterministic_and_independent_of_earlier_calls() {
+        let f = fixture();
+        let map = Map::from_bytes(&f.blob).expect("valid map");
+        let kp = keypoints(&f, &pose(0.1));
+        struct Ticks(core::cell::Cell<u64>);
+        impl Clock for Ticks {
+            fn now_us(&self) -> u64 {
+                self.0.set(self.0.get() + 7);
+                self.0.get()
+            }
+        }
+        with_model(|model| {
+            let mut l = LOCALIZER.lock().expect("lock");
+            let query = Query {
+                keypoints: &kp[..CAP],
+                camera: camera(),
+            };
+            let other = Query {
+                keypoints: &kp[10..50],
+                camera: camera(),
+            };
+            let views = ViewSelection::NearPrior {
+                prior: pose(0.0),
+                k: 3,
+                max_angle_deg: 10.0,
+            };
+            let config = LocalizerConfig::new();
+            let mut results = Vec::new();
+            for q in [&query, &other, &query] {
+                let clock = Ticks(core::cell::Cell::new(0));
+                let result = l
+                    .localize(model, &map, q, views, &config, Some(&clock))
+                    .expect("valid input");
+                results.push((result, l.correspondences().to_vec()));
+            }
+            let (first, first_matches) = &results[0];
+            assert_eq!(results[2].0, *first);
+            assert_eq!(results[2].1, *first_matches);
+            // The near-prior selection has all three views; view 30 is skipped.
+            assert_eq!((first.views_used, first.views_skipped), (2, 1));
+            assert!(first.counts.classified <= first.counts.mutual);
+            assert!(first.counts.merged <= first.counts.classified);
+            assert!(first.counts.inliers <= first.counts.merged);
+            assert_eq!(first_matches.len(), first.counts.merged);
+            let t = first.timings.expect("clock given");
+            assert_eq!(t.total_us, 5 * 7);
+            for w in first_matches.windows(2) {
+                assert!(w[0].keypoint < w[1].keypoint);
+            }
+            let mut points: Vec<u32> = first_matches.iter().map(|c| c.point).collect();
+            points.sort_unstable();
+            points.dedup();
+            assert_eq!(points.len(), first_matches.len(), "each point once");
+            assert!(first_matches
+                .iter()
+                .all(|c| usize::from(c.keypoint) < CAP && c.point < 80 && c.probability > 0.5));
+        });
+    }
+
+    /// The stages after the network: merging the per-keypoint bests (each 3D point kept
+    /// once, at its most probable keypoint) and the pose from the merged correspondences.
+    #[test]
+    fn merged_true_matches_give_the_true_pose() {
+        let f = fixture();
+        let map = Map::from_bytes(&f.blob).expect("valid map");
+        let truth = pose(0.1);
+        let kp = keypoints(&f, &truth);
+        let mut l = LOCALIZER.lock().expect("lock");
+        let query = Query {
+            keypoints: &kp[..CAP],
+            camera: camera(),
+        };
+        l.set_query(&query).expect("valid");
+        l.clear_matches(CAP);
+        let mut claim = |keypoint: usize, point: u32, probability: f32| {
+            (l.merged[keypoint].point, l.merged[keypoint].probability) = (point, probability);
+        };
+        // Keypoint 12 has no accepted match; keypoint 3 also claims point 2 with a lower
+        // probability than keypoint 2 does; keypoint 7 claims point 9 with a higher one
+        // than keypoint 9.
+        for k in (0..CAP).filter(|&k| k != 12) {
+            claim(k, k as u32, 0.9);
+        }
+        claim(3, 2, 0.8);
+        claim(7, 9, 0.95);
+        l.merge(&map, &query, CAP).expect("merges");
+        let merged = l.correspondences().to_vec();
+        assert_eq!(merged.len(), CAP - 3);
+        assert!(!merged
+            .iter()
+            .any(|c| c.keypoint == 3 || c.keypoint == 9 || c.keypoint == 12));
+        assert!(merged.iter().any(|c| c.keypoint == 7 && c.point == 9));
+        let mut localization = Localization::failed(Failure::NoPoseFound);
+        let pose = l
+            .solve(&LocalizerConfig::new(), &mut localization)
+            .expect("valid")
+            .expect("localized");
+        assert!(pose.rotation_error_deg(&truth) < 1e-3);
+        assert!(pose.translation_error(&truth) < 1e-4);
+        // Keypoint 7 matched to the wrong point is the only outlier.
+        assert_eq!(localization.counts.inliers, CAP - 4);
+        assert_eq!(l.inliers().count(), CAP - 4);
+        assert!(l
+            .correspondences()
+            .iter()
+            .any(|c| c.keypoint == 7 && !c.inlier));
+    }
+
+    #[test]
+    fn view_points_are_those_in_front_evenly_spread_over_the_list() {
+        let behind = [0.0, 0.0, -1.0];
+        let ahead = |i: f64| [i, 0.0, 4.0];
+        let points = [
+            (0, ahead(0.0)),
+            (1, behind),
+            (2, ahead(1.0)),
+            (3, ahead(2.0)),
+            (4, ahead(3.0)),
+            (5, [1e39, 0.0, 1.0]),
+            (6, ahead(4.0)),
+            (7, ahead(5.0)),
+        ];
+        let chosen = |capacity| -> Vec<i32> {
+            view_point_bearings(Pose::identity(), points.into_iter(), capacity)
+                .map(|(tag, _)| tag)
+                .collect()
+        };
+        // Six points are in front with an f32 bearing; all fit in 6 or more.
+        assert_eq!(chosen(6), std::vec![0, 2, 3, 4, 6, 7]);
+        assert_eq!(chosen(100), chosen(6));
+        // Three of six: positions 0, 2, 4 of the usable list.
+        assert_eq!(chosen(3), std::vec![0, 3, 6]);
+        // Four of six: positions 0, 1, 3, 4.
+        assert_eq!(chosen(4), std::vec![0, 2, 4, 6]);
+        assert_eq!(chosen(1), std::vec![0]);
+        assert!(chosen(0).is_empty());
+        let bearings: Vec<[f64; 2]> = view_point_bearings(Pose::identity(), points.into_iter(), 2)
+            .map(|(_, b)| b)
+            .collect();
+        assert_eq!(bearings, std::vec![[0.0, 0.0], [0.75, 0.0]]);
+    }
+}

@@ -1,0 +1,495 @@
+//! `gomatch-sim device`: the device link ([`gomatch::link`]) end to end in one process.
+//! The device loop runs in its own thread on its `static` workspace and buffers, exactly
+//! as on a microcontroller; the host talks to it through an in-process pipe (two ring
+//! buffers implementing [`embedded_io::Read`] + [`embedded_io::Write`]). The host asks
+//! for the device info, optionally sends noise (to show the receiver resynchronising),
+//! sends the queries of a synthetic scene and checks every reply against a direct
+//! [`Localizer::localize`] call on the same input.
+
+use std::collections::VecDeque;
+use std::convert::Infallible;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+use clap::Parser;
+use gomatch::link::{
+    self, Device, DeviceInfo, LinkError, LocalizeReply, LocalizeRequest, Request, RequestBody,
+    Response, ResponseBody, Service, Views,
+};
+use gomatch::localizer::MAX_VIEWS;
+use gomatch::weights::Precision;
+use gomatch::{Camera, Localizer, LocalizerConfig, Map, Model, Pose, Query, ViewSelection};
+use half::f16;
+use rand::{RngExt, SeedableRng};
+use rand_pcg::Pcg64Mcg;
+
+use crate::eval::{default_model_path, protocol_samples, query_pixels, HostClock, CAPACITY};
+use crate::map::build_map;
+use crate::protocol::ProtocolParams;
+use crate::synthetic::synthetic_scene;
+
+/// Receive buffer of the simulated device.
+const RX: usize = link::rx_frame_len(CAPACITY);
+
+static DEVICE_LOCALIZER: Mutex<Localizer<CAPACITY, f16>> = Mutex::new(Localizer::new());
+static DEVICE: Mutex<Device<CAPACITY, RX>> = Mutex::new(Device::new());
+static DIRECT_LOCALIZER: Mutex<Localizer<CAPACITY, f16>> = Mutex::new(Localizer::new());
+
+/// Drive a simulated localizer device over its link with a synthetic scene's queries.
+#[derive(Debug, Clone, Parser)]
+pub struct Args {
+    /// Model blob (default: <repo>/models/gomatch-int8.bin, else the reference fixture
+    /// weights converted to int8).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Seed of the synthetic scene family.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Index of the synthetic scene.
+    #[arg(long, default_value_t = 0)]
+    pub scene: u64,
+    /// Queries to send.
+    #[arg(long, default_value_t = 3)]
+    pub queries: usize,
+    /// Co-visible views per query.
+    #[arg(long, default_value_t = 5)]
+    pub k: usize,
+    /// Random bytes sent before the first request (the device must resynchronise).
+    #[arg(long, default_value_t = 1000)]
+    pub noise: usize,
+}
+
+/// One end of an in-process byte pipe.
+pub struct PipeEnd {
+    incoming: Arc<Channel>,
+    outgoing: Arc<Channel>,
+}
+
+/// One direction of a pipe: a ring buffer, and whether its writer is gone.
+#[derive(Default)]
+struct Channel {
+    state: Mutex<(VecDeque<u8>, bool)>,
+    ready: Condvar,
+}
+
+/// Two connected ends: what one writes, the other reads.
+pub fn pipe() -> (PipeEnd, PipeEnd) {
+    let (a, b) = (Arc::new(Channel::default()), Arc::new(Channel::default()));
+    (
+        PipeEnd {
+            incoming: a.clone(),
+            outgoing: b.clone(),
+        },
+        PipeEnd {
+            incoming: b,
+            outgoing: a,
+        },
+    )
+}
+
+impl embedded_io::ErrorType for PipeEnd {
+    type Error = Infallible;
+}
+
+impl embedded_io::Read for PipeEnd {
+    /// Blocks until a byte arrives; 0 once the other end is dropped and all is read.
+    fn read(&mut self, buf: &mut [u8]) -> Result<usize, Infallible> {
+        let mut state = self
+            .incoming
+            .state
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        while state.0.is_empty() && !state.1 && !buf.is_empty() {
+            state = self
+                .incoming
+                .ready
+                .wait(state)
+                .unwrap_or_else(|e| e.into_inner());
+        }
+        let n = buf.len().min(state.0.len());
+        for (slot, byte) in buf.iter_mut().zip(state.0.drain(..n)) {
+            *slot = byte;
+        }
+        Ok(n)
+    }
+}
+
+impl embedded_io::Write for PipeEnd {
+    fn write(&mut self, buf: &[u8]) -> Result<usize, Infallible> {
+        let mut state = self
+            .outgoing
+            .state
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        state.0.extend(buf);
+        self.outgoing.ready.notify_all();
+        Ok(buf.len())
+    }
+
+    fn flush(&mut self) -> Result<(), Infallible> {
+        Ok(())
+    }
+}
+
+impl Drop for PipeEnd {
+    fn drop(&mut self) {
+        let mut state = self
+            .outgoing
+            .state
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        state.1 = true;
+        self.outgoing.ready.notify_all();
+    }
+}
+
+/// The device's busy pin as a host sees it: its level and how often it rose.
+#[derive(Debug, Default)]
+pub struct BusyLine {
+    high: AtomicBool,
+    rises: AtomicUsize,
+}
+
+impl embedded_hal::digital::ErrorType for &BusyLine {
+    type Error = Infallible;
+}
+
+impl embedded_hal::digital::OutputPin for &BusyLine {
+    fn set_low(&mut self) -> Result<(), Infallible> {
+        self.high.store(false, Ordering::SeqCst);
+        Ok(())
+    }
+
+    fn set_high(&mut self) -> Result<(), Infallible> {
+        if !self.high.swap(true, Ordering::SeqCst) {
+            self.rises.fetch_add(1, Ordering::SeqCst);
+        }
+        Ok(())
+    }
+}
+
+/// The host end of the link: sends requests, reads reply frames.
+pub struct HostLink<IO> {
+    io: IO,
+    next_id: u32,
+    pending: Vec<u8>,
+}
+
+/// A reply and what came before it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Exchange {
+    /// The reply to the request.
+    pub response: Response,
+    /// Error replies to earlier, broken frames received before it.
+    pub refused: Vec<LinkError>,
+    /// Bytes of the request frame.
+    pub request_bytes: usize,
+    /// Send to reply.
+    pub round_trip: Duration,
+}
+
+impl<IO: embedded_io::Read + embedded_io::Write> HostLink<IO> {
+    /// A host on `io`; request ids start at 1.
+    pub fn new(io: IO) -> Self {
+        Self {
+            io,
+            next_id: 1,
+            pending: Vec::new(),
+        }
+    }
+
+    /// Writes raw bytes (e.g. line noise).
+    pub fn send_raw(&mut self, bytes: &[u8]) -> anyhow::Result<()> {
+        self.io
+            .write_all(bytes)
+            .map_err(|e| anyhow::anyhow!("writing: {e:?}"))
+    }
+
+    /// Sends `[0]` (closing any broken frame before it) and the request's frame, then
+    /// reads replies until the one with the request's id.
+    pub fn request(&mut self, body: RequestBody<'_>) -> anyhow::Result<Exchange> {
+        let id = self.next_id;
+        self.next_id = self.next_id.wrapping_add(1);
+        let request = Request { id, body };
+        let mut frame = vec![0u8; 1 + link::rx_frame_len(CAPACITY) + 1];
+        let len = link::encode_frame(&request, &mut frame[1..])
+            .context("request larger than the device's frame")?
+            .len();
+        frame.truncate(1 + len);
+        let start = Instant::now();
+        self.send_raw(&frame)?;
+        let mut refused = Vec::new();
+        loop {
+            let response = self.read_response()?;
+            match (response.id, &response.body) {
+                (Some(got), _) if got == id => {
+                    return Ok(Exchange {
+                        response,
+                        refused,
+                        request_bytes: frame.len(),
+                        round_trip: start.elapsed(),
+                    })
+                }
+                (None, ResponseBody::Error(error)) => refused.push(error.clone()),
+                _ => bail!("unexpected reply {response:?} while waiting for request {id}"),
+            }
+        }
+    }
+
+    /// Reads one reply frame.
+    fn read_response(&mut self) -> anyhow::Result<Response> {
+        loop {
+            if let Some(end) = self.pending.iter().position(|&b| b == 0) {
+                let mut frame: Vec<u8> = self.pending.drain(..=end).collect();
+                if end == 0 {
+                    continue;
+                }
+                return link::decode_frame::<Response>(&mut frame)
+                    .map_err(|e| anyhow::anyhow!("undecodable reply frame: {e:?}"));
+            }
+            let mut chunk = [0u8; 256];
+            let n = self
+                .io
+                .read(&mut chunk)
+                .map_err(|e| anyhow::anyhow!("reading: {e:?}"))?;
+            if n == 0 {
+                bail!("the device closed the link");
+            }
+            self.pending.extend_from_slice(&chunk[..n]);
+        }
+    }
+}
+
+/// One query for the device.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LinkQuery {
+    /// Keypoint pixels.
+    pub pixels: Vec<[f32; 2]>,
+    /// The query camera.
+    pub camera: Camera,
+    /// Image ids of the views to match.
+    pub view_ids: Vec<u32>,
+    /// True pose, for the report.
+    pub truth: Pose,
+}
+
+impl LinkQuery {
+    /// The request body (`keypoint_bytes` holds the wire keypoints).
+    pub fn request<'a>(&self, keypoint_bytes: &'a mut Vec<u8>) -> anyhow::Result<RequestBody<'a>> {
+        keypoint_bytes.resize(link::KEYPOINT_BYTES * self.pixels.len(), 0);
+        let keypoints =
+            link::encode_keypoints(&self.pixels, keypoint_bytes).context("keypoint buffer")?;
+        let ids = heapless::Vec::from_slice(&self.view_ids)
+            .map_err(|_| anyhow::anyhow!("more than {MAX_VIEWS} views"))?;
+        Ok(RequestBody::Localize(LocalizeRequest {
+            camera: self.camera,
+            keypoints,
+            views: Views::ImageIds(ids),
+        }))
+    }
+
+    /// The same query run directly on a localizer (no clock), as the device's reply.
+    pub fn direct(&self, model: &Model<'_>, map: &Map<'_>) -> anyhow::Result<LocalizeReply> {
+        let mut localizer = DIRECT_LOCALIZER.lock().unwrap_or_else(|e| e.into_inner());
+        let query = Query {
+            keypoints: &self.pixels,
+            camera: self.camera,
+        };
+        let views = ViewSelection::ImageIds(&self.view_ids);
+        let result = localizer
+            .localize(model, map, &query, views, &LocalizerConfig::new(), None)
+            .map_err(|e| anyhow::anyhow!("direct localize: {e}"))?;
+        Ok(LocalizeReply::from(&result))
+    }
+}
+
+/// What a session saw.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Session {
+    /// The device's answer to the info request.
+    pub info: DeviceInfo,
+    /// One exchange per query, in order.
+    pub exchanges: Vec<Exchange>,
+    /// Times the busy pin rose.
+    pub busy_pulses: usize,
+}
+
+/// Runs a device thread on the blobs, and on the host side: an info request, `noise`
+/// sent raw, then one localization request per query. The device stops when the host
+/// closes the pipe.
+pub fn run_session(
+    model_blob: &[u8],
+    map_blob: &[u8],
+    noise: &[u8],
+    queries: &[LinkQuery],
+) -> anyhow::Result<Session> {
+    let (host_end, mut device_end) = pipe();
+    let busy = BusyLine::default();
+    let clock = HostClock::default();
+    std::thread::scope(|scope| {
+        let device = scope.spawn(|| -> anyhow::Result<()> {
+            let mut localizer = DEVICE_LOCALIZER.lock().unwrap_or_else(|e| e.into_inner());
+            let mut device = DEVICE.lock().unwrap_or_else(|e| e.into_inner());
+            let service = Service::new(&mut localizer, model_blob, map_blob, &busy);
+            let mut service = service
+                .map_err(|e| anyhow::anyhow!("device start: {e}"))?
+                .with_clock(&clock);
+            let served = device.serve_until_closed(&mut device_end, &mut service);
+            served.map_err(|e| anyhow::anyhow!("device link: {e:?}"))
+        });
+        let mut host = HostLink::new(host_end);
+        let session = host_session(&mut host, noise, queries);
+        drop(host);
+        let device = device
+            .join()
+            .map_err(|_| anyhow::anyhow!("device panicked"))?;
+        let (info, exchanges) = session?;
+        device?;
+        Ok(Session {
+            info,
+            exchanges,
+            busy_pulses: busy.rises.load(Ordering::SeqCst),
+        })
+    })
+}
+
+fn host_session(
+    host: &mut HostLink<PipeEnd>,
+    noise: &[u8],
+    queries: &[LinkQuery],
+) -> anyhow::Result<(DeviceInfo, Vec<Exchange>)> {
+    let info = match host.request(RequestBody::Info)?.response.body {
+        ResponseBody::Info(info) => info,
+        other => bail!("info request answered with {other:?}"),
+    };
+    host.send_raw(noise)?;
+    let mut exchanges = Vec::new();
+    let mut keypoint_bytes = Vec::new();
+    for query in queries {
+        exchanges.push(host.request(query.request(&mut keypoint_bytes)?)?);
+    }
+    Ok((info, exchanges))
+}
+
+/// The model blob to serve: `--model`, else the shipped int8 model, else the reference
+/// fixture weights converted to int8; with a description of which.
+pub fn load_model(path: Option<&Path>) -> anyhow::Result<(Vec<u8>, String)> {
+    let shipped = default_model_path();
+    let path = path
+        .map(Path::to_path_buf)
+        .or_else(|| shipped.is_file().then_some(shipped));
+    if let Some(path) = path {
+        let blob = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+        return Ok((blob, path.display().to_string()));
+    }
+    let fixture = fixture_weights_path();
+    let checkpoint = std::fs::read(&fixture).with_context(|| {
+        format!(
+            "no model: neither models/gomatch-int8.bin nor {} exists; pass --model",
+            fixture.display()
+        )
+    })?;
+    let (blob, _) = gomatch_tools::convert::convert(&checkpoint, Precision::Int8)?;
+    let what = format!(
+        "{} converted to int8 (random reference fixture weights: poses will be wrong)",
+        fixture.display()
+    );
+    Ok((blob, what))
+}
+
+/// `<repo>/../shared/reference/fixtures/weights.safetensors`.
+pub fn fixture_weights_path() -> PathBuf {
+    let host_sim = Path::new(env!("CARGO_MANIFEST_DIR"));
+    host_sim.join("../../shared/reference/fixtures/weights.safetensors")
+}
+
+/// Runs `gomatch-sim device`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let (model_blob, model_name) = load_model(args.model.as_deref())?;
+    let model = Model::from_bytes(&model_blob).map_err(|e| anyhow::anyhow!("model: {e}"))?;
+    let scene = synthetic_scene(args.seed, args.scene);
+    let map_blob = build_map(&scene)?;
+    let map = Map::from_bytes(&map_blob).map_err(|e| anyhow::anyhow!("map: {e}"))?;
+    let params = ProtocolParams {
+        k: args.k,
+        queries_per_scene: args.queries,
+        seed: args.seed,
+        max_keypoints: CAPACITY,
+        max_points: CAPACITY,
+        ..ProtocolParams::default()
+    };
+    let queries: Vec<LinkQuery> = protocol_samples(&scene, &params)
+        .iter()
+        .map(|s| LinkQuery {
+            pixels: query_pixels(s),
+            camera: s.camera,
+            view_ids: s.views.iter().map(|v| v.image_id).collect(),
+            truth: s.pose,
+        })
+        .collect();
+    let mut rng = Pcg64Mcg::seed_from_u64(args.seed);
+    let noise: Vec<u8> = (0..args.noise).map(|_| rng.random()).collect();
+    println!("model: {model_name}");
+    println!(
+        "device: Localizer<{CAPACITY}, f16> ({} B) + Device<{CAPACITY}, {RX}> link buffers ({} B), static",
+        Localizer::<CAPACITY, f16>::BYTES,
+        Device::<CAPACITY, RX>::BYTES
+    );
+    let session = run_session(&model_blob, &map_blob, &noise, &queries)?;
+    let i = &session.info;
+    println!(
+        "info: protocol {}, capacity {}, Sinkhorn {} B/value, workspace {} B, rx frame {} B; model v{} {:?} {} B (d = {}); map v{} {} points, {} views, {} B",
+        i.protocol_version, i.capacity, i.sinkhorn_bytes, i.workspace_bytes, i.rx_frame_bytes,
+        i.model.format_version, i.model.precision, i.model.bytes, i.model.config.feature_dim,
+        i.map.format_version, i.map.points, i.map.views, i.map.bytes
+    );
+    let mut mismatches = 0;
+    for (q, (query, exchange)) in queries.iter().zip(&session.exchanges).enumerate() {
+        if !exchange.refused.is_empty() {
+            println!(
+                "  (before query {q}: {} error replies to the noise: {:?})",
+                exchange.refused.len(),
+                exchange.refused
+            );
+        }
+        let direct = query.direct(&model, &map)?;
+        let ResponseBody::Localized(reply) = &exchange.response.body else {
+            println!("query {q}: refused: {:?}", exchange.response.body);
+            mismatches += 1;
+            continue;
+        };
+        let identical = LocalizeReply {
+            timings: None,
+            ..*reply
+        } == direct;
+        mismatches += usize::from(!identical);
+        let outcome = match reply.outcome.map(|p| p.to_pose()) {
+            Ok(Ok(pose)) => format!(
+                "pose: rotation error {:.3} deg, translation error {:.4}",
+                pose.rotation_error_deg(&query.truth),
+                pose.translation_error(&query.truth)
+            ),
+            Ok(Err(e)) => format!("pose not finite: {e}"),
+            Err(failure) => format!("not localized: {failure}"),
+        };
+        let c = &reply.counts;
+        println!(
+            "query {q}: {} keypoints, {} views, request {} B, round trip {:.1} ms (device total {:.1} ms); matches {} mutual / {} classified / {} merged / {} inliers; {outcome}; identical to a direct localize call: {}",
+            query.pixels.len(),
+            query.view_ids.len(),
+            exchange.request_bytes,
+            exchange.round_trip.as_secs_f64() * 1e3,
+            reply.timings.map_or(0.0, |t| t.total_us as f64 / 1e3),
+            c.mutual, c.classified, c.merged, c.inliers,
+            if identical { "yes" } else { "NO" }
+        );
+    }
+    println!("busy pin pulses: {}", session.busy_pulses);
+    if mismatches > 0 {
+        bail!("{mismatches} replies differ from direct localize calls");
+    }
+    Ok(())
+}

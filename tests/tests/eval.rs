@@ -1,0 +1,182 @@
+//! `gomatch-sim eval` and the localization protocol against the device path: the oracle
+//! (ground-truth matches into the pose solver) localizes nearly every query of a
+//! synthetic scene and of the real validation scenes, the device and the protocol pick
+//! the same database points, results do not depend on the thread count, and the plot is
+//! written. The real scenes are skipped with a message when `shared/` is absent.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use gomatch::localizer::view_point_bearings;
+use gomatch::map::Map;
+use gomatch::LocalizerConfig;
+use gomatch_sim::eval::{
+    curve_label, evaluate, plot_curves, protocol_samples, report_errors, EvalOptions, Matching,
+    QueryResult, Report, TimingsMs, CAPACITY,
+};
+use gomatch_sim::map::build_map;
+use gomatch_sim::protocol::ProtocolParams;
+use gomatch_sim::scene::{Scene, SceneSource};
+use gomatch_sim::synthetic::synthetic_scene;
+
+fn options(k: usize, queries: usize, threads: usize) -> EvalOptions {
+    EvalOptions {
+        protocol: ProtocolParams {
+            k,
+            queries_per_scene: queries,
+            max_keypoints: CAPACITY,
+            max_points: CAPACITY,
+            ..ProtocolParams::default()
+        },
+        localizer: LocalizerConfig::new(),
+        threads,
+    }
+}
+
+fn print(report: &Report) {
+    println!(
+        "{} k={} oracle: {} queries, {} failures, AUC @1/5/10 px {:.2} / {:.2} / {:.2}",
+        report.scene,
+        report.k,
+        report.queries,
+        report.failures,
+        report.auc_1px,
+        report.auc_5px,
+        report.auc_10px
+    );
+}
+
+fn data_dir() -> Option<PathBuf> {
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
+    if data.is_dir() {
+        Some(data)
+    } else {
+        println!("SKIPPED: {} is absent", data.display());
+        None
+    }
+}
+
+#[test]
+fn oracle_localizes_the_queries_of_synthetic_scenes() {
+    for index in 0..2 {
+        let scene = synthetic_scene(1, index);
+        let report = evaluate(&scene, Matching::Oracle, &options(10, 15, 1), false).unwrap();
+        print(&report);
+        assert!(report.queries >= 10, "{} queries", report.queries);
+        assert_eq!(report.failures, 0);
+        assert!(report.auc_5px >= 90.0, "AUC@5px {}", report.auc_5px);
+        let rotation = report.rot_deg_q.unwrap();
+        assert!(rotation[1] < 0.5, "median rotation error {}", rotation[1]);
+    }
+}
+
+/// AUC@5px floors: PoseLib on the same ground truth (shared/data/README.md, k = 10, 40
+/// queries) minus one point.
+#[test]
+fn oracle_matches_poselib_on_the_validation_scenes() {
+    let Some(data) = data_dir() else { return };
+    for (scene, poselib_auc5) in [("mouse", 98.4), ("sceaux", 98.7)] {
+        let source = SceneSource::Colmap(data.join("colmap").join(scene));
+        let mut loaded = source.load().unwrap();
+        loaded.name = source.name();
+        for k in [1, 10] {
+            let report = evaluate(&loaded, Matching::Oracle, &options(k, 40, 1), false).unwrap();
+            print(&report);
+            assert_eq!(report.failures, 0);
+            let floor = if k == 10 { poselib_auc5 - 1.0 } else { 95.0 };
+            assert!(
+                report.auc_5px >= floor,
+                "{scene} k={k}: AUC@5px {} below {floor}",
+                report.auc_5px
+            );
+        }
+    }
+}
+
+/// The protocol's view points (ground truth) are exactly the points the device's
+/// localizer reads from the map blob for the same view.
+#[test]
+fn device_and_protocol_select_the_same_view_points() {
+    let mut scenes: Vec<Scene> = vec![synthetic_scene(2, 1)];
+    if let Some(data) = data_dir() {
+        scenes.push(
+            SceneSource::Colmap(data.join("colmap/sceaux"))
+                .load()
+                .unwrap(),
+        );
+    }
+    for scene in &scenes {
+        let blob = build_map(scene).unwrap();
+        let map = Map::from_bytes(&blob).unwrap();
+        // Map point index of every scene point id (the map keeps observed points in id
+        // order).
+        let index: BTreeMap<u64, u32> = scene
+            .points
+            .values()
+            .filter(|p| !p.track.is_empty())
+            .enumerate()
+            .map(|(i, p)| (p.id, i as u32))
+            .collect();
+        let mut capped = 0;
+        for sample in protocol_samples(scene, &options(10, 5, 1).protocol) {
+            for view in &sample.views {
+                let v = map.views_by_image_id::<1>(&[view.image_id]).unwrap()[0] as usize;
+                let pose = map.view(v).unwrap().pose;
+                let observed = map.view_points(v).unwrap();
+                let points = (0..observed.len()).map(|j| {
+                    let p = observed.get(j).unwrap();
+                    (p, map.point(p as usize).unwrap().map(f64::from))
+                });
+                let device: Vec<u32> = view_point_bearings(pose, points, CAPACITY)
+                    .map(|(p, _)| p)
+                    .collect();
+                let protocol: Vec<u32> = view.point_ids.iter().map(|id| index[id]).collect();
+                assert_eq!(device, protocol, "view {}", view.image_id);
+                capped += usize::from(observed.len() > CAPACITY);
+            }
+        }
+        println!("{}: {capped} views over the capacity", scene.name);
+    }
+}
+
+fn without_timings(results: &[QueryResult]) -> Vec<QueryResult> {
+    results
+        .iter()
+        .map(|q| QueryResult {
+            timings_ms: TimingsMs::default(),
+            ..q.clone()
+        })
+        .collect()
+}
+
+#[test]
+fn results_do_not_depend_on_the_thread_count() {
+    let scene = synthetic_scene(1, 2);
+    let one = evaluate(&scene, Matching::Oracle, &options(10, 7, 1), false).unwrap();
+    let two = evaluate(&scene, Matching::Oracle, &options(10, 7, 2), false).unwrap();
+    assert_eq!(
+        without_timings(&one.per_query),
+        without_timings(&two.per_query)
+    );
+    assert_eq!(
+        (one.auc_1px, one.auc_5px, one.auc_10px),
+        (two.auc_1px, two.auc_5px, two.auc_10px)
+    );
+}
+
+#[test]
+fn plot_writes_a_png_of_the_curves() {
+    let scene = synthetic_scene(1, 0);
+    let report = evaluate(&scene, Matching::Oracle, &options(10, 5, 1), false).unwrap();
+    let k1 = evaluate(&scene, Matching::Oracle, &options(1, 5, 1), false).unwrap();
+    let path = std::env::temp_dir().join(format!("gomatch-eval-{}.png", std::process::id()));
+    let curves = [
+        (curve_label(&report), report_errors(&report)),
+        (curve_label(&k1), report_errors(&k1)),
+    ];
+    plot_curves(&curves, &path).unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    std::fs::remove_file(&path).unwrap();
+    assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");
+    assert!(bytes.len() > 1000);
+}

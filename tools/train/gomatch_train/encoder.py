@@ -1,0 +1,48 @@
+"""Point encoder (paper supp. "Feature Encoder", Fig. "encoder"): PointResNet.
+
+    x = conv_in(points)                       per-point linear in -> width
+    for each residual block:
+        y = preconv(x)                        linear, no norm, no activation
+        y = InstanceNorm(conv1(y))
+        y = InstanceNorm(conv2(y))
+        x = ReLU(y) + x
+
+The same module (with a different input width) is the trunk of the outlier classifier.
+"""
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .layers import InstanceNorm, PointLinear
+
+
+class ResidualBlock(nn.Module):
+    """One residual block; submodule names mirror the reference (`preconv.0`, `conv1.0`, `conv2.0`)."""
+
+    def __init__(self, width: int):
+        super().__init__()
+        self.preconv = nn.Sequential(PointLinear(width, width))
+        self.conv1 = nn.Sequential(PointLinear(width, width), InstanceNorm())
+        self.conv2 = nn.Sequential(PointLinear(width, width), InstanceNorm())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.conv2(self.conv1(self.preconv(x)))
+        return F.relu(y) + x
+
+
+class PointResNet(nn.Module):
+    """(N, in_channels) -> (N, width); InstanceNorm statistics run over the N points of the one set given."""
+
+    def __init__(self, in_channels: int, width: int, blocks: int):
+        super().__init__()
+        self.conv_in = nn.Sequential(PointLinear(in_channels, width))
+        self.blocks = blocks
+        for i in range(blocks):
+            self.add_module(f"conv_{i}", ResidualBlock(width))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = self.conv_in(x)
+        for i in range(self.blocks):
+            x = getattr(self, f"conv_{i}")(x)
+        return x

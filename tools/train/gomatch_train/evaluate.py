@@ -1,0 +1,97 @@
+"""Per-sample losses and matching metrics, shared by training steps and validation."""
+
+from dataclasses import dataclass, field
+
+import torch
+
+from .loss import classifier_labels, classifier_loss, match_loss
+from .model import MatchResult
+
+
+@dataclass
+class SampleOutcome:
+    match_loss: torch.Tensor
+    cls_loss: torch.Tensor
+    proposed: int  # matches given by the mutual assignment
+    proposed_correct: int  # ... of which are GT matches
+    gt_matches: int
+    kept: int  # proposed matches with classifier probability > threshold
+    kept_correct: int
+
+    @property
+    def loss(self) -> torch.Tensor:
+        """Paper sec. 4.2: L_total = L_match + L_or."""
+        return self.match_loss + self.cls_loss
+
+
+def assess(result: MatchResult, match: torch.Tensor, threshold: float) -> SampleOutcome:
+    """Losses and match counts of one forward pass against the GT `match` (N2,) (3D index or -1)."""
+    labels = classifier_labels(result.i3d, result.i2d, match)
+    kept = result.match_probs.detach() > threshold
+    return SampleOutcome(
+        match_loss=match_loss(result.log_plan, match),
+        cls_loss=classifier_loss(result.cls_logits, labels),
+        proposed=int(labels.numel()),
+        proposed_correct=int(labels.sum().item()),
+        gt_matches=int((match >= 0).sum().item()),
+        kept=int(kept.sum().item()),
+        kept_correct=int((kept & (labels > 0)).sum().item()),
+    )
+
+
+def ratio(num: float, den: float) -> float:
+    return num / den if den > 0 else 0.0
+
+
+@dataclass
+class Totals:
+    """Sums over samples; precision/recall are micro-averages (pooled counts)."""
+
+    samples: int = 0
+    match_loss: float = 0.0
+    cls_loss: float = 0.0
+    counts: dict = field(
+        default_factory=lambda: dict(proposed=0, proposed_correct=0, gt_matches=0, kept=0, kept_correct=0)
+    )
+
+    def add(self, outcome: SampleOutcome) -> None:
+        self.samples += 1
+        self.match_loss += outcome.match_loss.item()
+        self.cls_loss += outcome.cls_loss.item()
+        for key in self.counts:
+            self.counts[key] += getattr(outcome, key)
+
+    def merge(self, other: "Totals") -> None:
+        self.samples += other.samples
+        self.match_loss += other.match_loss
+        self.cls_loss += other.cls_loss
+        for key in self.counts:
+            self.counts[key] += other.counts[key]
+
+    def to_tensor(self) -> torch.Tensor:
+        values = [self.samples, self.match_loss, self.cls_loss] + [self.counts[k] for k in self.counts]
+        return torch.tensor(values, dtype=torch.float64)
+
+    @classmethod
+    def from_tensor(cls, t: torch.Tensor) -> "Totals":
+        totals = cls()
+        values = t.tolist()
+        totals.samples, totals.match_loss, totals.cls_loss = int(values[0]), values[1], values[2]
+        for key, value in zip(totals.counts, values[3:]):
+            totals.counts[key] = int(value)
+        return totals
+
+    def summary(self) -> dict:
+        c = self.counts
+        n = max(self.samples, 1)
+        return {
+            "samples": self.samples,
+            "loss": (self.match_loss + self.cls_loss) / n,
+            "match_loss": self.match_loss / n,
+            "cls_loss": self.cls_loss / n,
+            "match_precision": ratio(c["proposed_correct"], c["proposed"]),
+            "match_recall": ratio(c["proposed_correct"], c["gt_matches"]),
+            "cls_precision": ratio(c["kept_correct"], c["kept"]),
+            "cls_recall": ratio(c["kept_correct"], c["proposed_correct"]),
+            "matches_per_sample": c["proposed"] / n,
+        }

@@ -1,0 +1,59 @@
+"""Per-point building blocks shared by every stage.
+
+Features are point-major, shape (N, C): one row per keypoint. The reference stores its 1x1 convolutions with
+weights of shape (out, in, 1) or (out, in, 1, 1); `PointLinear` keeps exactly that parameter shape so the
+state_dict names and shapes equal the reference checkpoint's, and applies it as a per-point linear map.
+"""
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+INSTANCE_NORM_EPS = 1e-5
+
+
+class PointLinear(nn.Module):
+    """A 1x1 convolution applied to point-major features: (N, in) -> (N, out).
+
+    `kernel_dims` is the number of trailing unit dimensions of the stored weight (1 for Conv1d, 2 for Conv2d).
+    Initialisation follows PyTorch's default for convolutions (Kaiming-uniform, a = sqrt(5)).
+    """
+
+    def __init__(self, in_features: int, out_features: int, bias: bool = True, kernel_dims: int = 1):
+        super().__init__()
+        self.in_features = in_features
+        self.out_features = out_features
+        self.weight = nn.Parameter(torch.empty((out_features, in_features) + (1,) * kernel_dims))
+        self.bias = nn.Parameter(torch.empty(out_features)) if bias else None
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        nn.init.kaiming_uniform_(self.weight, a=math.sqrt(5))
+        if self.bias is not None:
+            bound = 1.0 / math.sqrt(self.in_features)
+            nn.init.uniform_(self.bias, -bound, bound)
+
+    def matrix(self) -> torch.Tensor:
+        """The weight as an (out, in) matrix."""
+        return self.weight.view(self.out_features, self.in_features)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.linear(x, self.matrix(), self.bias)
+
+
+def instance_norm(x: torch.Tensor) -> torch.Tensor:
+    """InstanceNorm without affine parameters over the rows of a point-major (N, C) tensor.
+
+    Per channel: (x - mean) / sqrt(biased_var + 1e-5), statistics over the N rows (one set of points).
+    Implemented with the batch-norm kernel in training mode, which computes exactly these per-column statistics.
+    """
+    return F.batch_norm(x, None, None, training=True, momentum=0.0, eps=INSTANCE_NORM_EPS)
+
+
+class InstanceNorm(nn.Module):
+    """Module form of `instance_norm` (parameter-free), used inside `nn.Sequential` stacks."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return instance_norm(x)

@@ -1,0 +1,118 @@
+"""Matching layer (paper sec. 3 "Optimal transport", supp. eq. 9-10): descriptor distances with dustbins,
+log-domain Sinkhorn (plus the same iteration in the exp domain, used for training speed) and mutual
+nearest-neighbour assignment.
+
+All matrices are (N3 + 1, N2 + 1): rows are 3D points, columns 2D keypoints, the last row/column the dustbin.
+"""
+
+import torch
+
+SINKHORN_STOP_THRESHOLD = 1e-6
+# exp(-x) for x up to this stays a normal float32 (> 1e-35): the exp-domain solver is exact enough below it.
+MAX_EXP_DOMAIN_RANGE = 80.0
+
+
+def descriptor_distances(desc3d: torch.Tensor, desc2d: torch.Tensor) -> torch.Tensor:
+    """Euclidean distances (N3, N2) between descriptors: sqrt(max(|a|^2 + |b|^2 - 2ab, 1e-30))."""
+    sq3d = desc3d.pow(2).sum(dim=-1, keepdim=True)
+    sq2d = desc2d.pow(2).sum(dim=-1, keepdim=True)
+    squared = torch.addmm(sq2d.t(), desc3d, desc2d.t(), alpha=-2) + sq3d
+    return squared.clamp_min(1e-30).sqrt()
+
+
+def cost_with_dustbins(distances: torch.Tensor, bin_score: torch.Tensor) -> torch.Tensor:
+    """Append a dustbin row and column filled with the learnable scalar `bin_score`: (N3+1, N2+1)."""
+    n3d, n2d = distances.shape
+    rows = torch.cat([distances, bin_score.expand(n3d, 1)], dim=1)
+    last = torch.cat([bin_score.expand(1, n2d), bin_score.expand(1, 1)], dim=1)
+    return torch.cat([rows, last], dim=0)
+
+
+def marginals(n3d: int, n2d: int, like: torch.Tensor):
+    """Row marginals [1]*N3 + [N2] and column marginals [1]*N2 + [N3], both divided by N3 + N2."""
+    one = like.new_ones(1)
+    mu = torch.cat([one.expand(n3d), one * n2d]) / (n3d + n2d)
+    nu = torch.cat([one.expand(n2d), one * n3d]) / (n3d + n2d)
+    return mu, nu
+
+
+def log_sinkhorn(cost: torch.Tensor, mu: torch.Tensor, nu: torch.Tensor, eps: float, max_iters: int):
+    """Entropy-regularised optimal transport in the log domain.
+
+    With M(u, v)_ij = (-C_ij + u_i + v_j) / eps, alternates
+        u <- eps * (log(mu + 1e-8) - logsumexp_j M(u, v)) + u
+        v <- eps * (log(nu + 1e-8) - logsumexp_i M(u, v)) + v
+    for at most `max_iters` iterations, stopping early once ||u - u_prev||_2 < 1e-6.
+    Returns (log P, iterations run) with log P = M(u, v), the log of the transport plan.
+    """
+
+    def modified_cost(u, v):
+        return (-cost + u.unsqueeze(-1) + v.unsqueeze(-2)) / eps
+
+    u, v = torch.zeros_like(mu), torch.zeros_like(nu)
+    log_mu, log_nu = torch.log(mu + 1e-8), torch.log(nu + 1e-8)
+    iterations = 0
+    for _ in range(max_iters):
+        u_prev = u
+        u = eps * (log_mu - torch.logsumexp(modified_cost(u, v), dim=-1)) + u
+        v = eps * (log_nu - torch.logsumexp(modified_cost(u, v).transpose(-2, -1), dim=-1)) + v
+        iterations += 1
+        if (u - u_prev).norm() < SINKHORN_STOP_THRESHOLD:
+            break
+    return modified_cost(u, v), iterations
+
+
+def scaling_sinkhorn(cost: torch.Tensor, mu: torch.Tensor, nu: torch.Tensor, eps: float, max_iters: int):
+    """The iteration of `log_sinkhorn`, carried out with scaling vectors (same result up to float rounding).
+
+    With s = min C, K = exp(-(C - s) / eps), a = exp((u - s) / eps), b = exp(v / eps) the log-domain updates read
+    a <- (mu + 1e-8) / (K b), b <- (nu + 1e-8) / (K^T a), and log P = log a_i + log K_ij + log b_j; the stop test
+    eps * ||log a - log a_prev|| < 1e-6 is the log-domain one. Two matrix-vector products per iteration instead of
+    two logsumexp passes make forward and backward several times cheaper; used for training.
+    Requires (max C - min C) / eps <= MAX_EXP_DOMAIN_RANGE so that K has no underflow.
+    """
+    shift = cost.detach().min()
+    log_k = (cost - shift) / -eps
+    k = log_k.exp()
+    row_mass, col_mass = mu + 1e-8, nu + 1e-8
+    b = torch.ones_like(nu)
+    log_a_prev = torch.full_like(mu, -shift.item() / eps)
+    iterations = 0
+    for _ in range(max_iters):
+        a = row_mass / (k @ b)
+        b = col_mass / (k.t() @ a)
+        iterations += 1
+        log_a = a.log()
+        if (eps * (log_a - log_a_prev)).norm() < SINKHORN_STOP_THRESHOLD:
+            break
+        log_a_prev = log_a
+    return log_a.unsqueeze(1) + log_k + b.log().unsqueeze(0), iterations
+
+
+def transport(cost: torch.Tensor, mu: torch.Tensor, nu: torch.Tensor, eps: float, max_iters: int):
+    """(log P, iterations): the reference's log-domain arithmetic for inference (no autograd), the equivalent
+    exp-domain iteration when gradients are recorded and the cost range allows it (training speed)."""
+    if torch.is_grad_enabled() and float(cost.detach().max() - cost.detach().min()) / eps <= MAX_EXP_DOMAIN_RANGE:
+        return scaling_sinkhorn(cost, mu, nu, eps, max_iters)
+    return log_sinkhorn(cost, mu, nu, eps, max_iters)
+
+
+@torch.no_grad()
+def mutual_assignment(plan: torch.Tensor):
+    """Matches (i3d, i2d) from the plan without dustbins, sorted by 3D index then 2D index.
+
+    A match is a mutual nearest neighbour (argmax of its row and of its column). When there are at most 4
+    mutual matches, all distinct one-way nearest-neighbour pairs of both directions are returned instead.
+    """
+    scores = plan[:-1, :-1]
+    n3d, n2d = scores.shape
+    best2d = scores.argmax(dim=1)
+    best3d = scores.argmax(dim=0)
+    rows = torch.arange(n3d, device=plan.device)
+    mutual = best3d[best2d] == rows
+    i3d, i2d = rows[mutual], best2d[mutual]
+    if i3d.numel() <= 4:
+        cols = torch.arange(n2d, device=plan.device)
+        keys = torch.unique(torch.cat([rows * n2d + best2d, best3d * n2d + cols]), sorted=True)
+        i3d, i2d = keys // n2d, keys % n2d
+    return i3d, i2d

@@ -1,0 +1,316 @@
+"""Train GoMatch (BVs) on `gomatch-dataset` files.
+
+    python -m gomatch_train.train --train A.safetensors [B.safetensors ...] --val V.safetensors --out DIR \
+        --epochs 20 --batch 16 --max-points 256 --workers 2 [--feature-dim 64 --encoder-blocks 6] [--resume]
+
+One forward pass per sample (InstanceNorm statistics are per set and set sizes differ); gradients of `--batch`
+samples are accumulated (mean loss) before each Adam step, optionally shared among `--workers` processes. Every
+epoch draws a fresh subsample of every training sample (outlier rate and point budget, see dataset.py) from a
+generator seeded by (seed, epoch, sample), so a run resumed from a checkpoint repeats exactly what the uninterrupted
+run would have done.
+
+Files in DIR:
+    checkpoint.pt       model, optimizer, position (epoch, batch), RNG states, history; every epoch and every
+                        --ckpt-minutes; --resume continues from it
+    last.safetensors    export of the latest checkpointed model (export.py format)
+    best.safetensors    export of the model with the lowest validation loss so far
+    history.jsonl       one JSON line of validation metrics per epoch
+"""
+
+import argparse
+import json
+import os
+import random
+import sys
+import time
+
+import numpy as np
+import torch
+
+from .config import ModelConfig
+from .dataset import load_samples, subsample
+from .evaluate import Totals, assess
+from .export import save_export
+from .model import GoMatch
+from .parallel import Group, launch
+from .runtime import configure_cpu
+
+CHECKPOINT = "checkpoint.pt"
+# Options that must not change when a run is resumed (they define what the run computes).
+FIXED_ON_RESUME = (
+    "train", "val", "seed", "batch", "lr", "max_points", "min_points", "outlier_rate", "val_max_points",
+    "feature_dim", "encoder_blocks", "classifier_blocks",
+)  # fmt: skip
+VAL_MIN_POINTS = 10  # reference: evaluation counts a sample as failed below 10 points; no other filtering
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--train", nargs="+", required=True, help="training dataset file(s)")
+    p.add_argument("--val", required=True, help="validation dataset file")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--epochs", type=int, default=20)
+    p.add_argument("--batch", type=int, default=16, help="samples per optimizer step (gradient accumulation)")
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--max-points", type=int, default=256, help="point budget per set and sample (<= 0: none)")
+    p.add_argument("--min-points", type=int, default=100, help="skip training samples with a smaller set")
+    p.add_argument("--outlier-rate", type=float, nargs=2, default=[0.5, 0.5], metavar=("LOW", "HIGH"),
+                   help="keypoint outlier rate range enforced on training samples (reference: 0.5 0.5)")
+    p.add_argument("--val-max-points", type=int, default=None, help="validation point budget (default --max-points)")
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads per worker")
+    p.add_argument("--workers", type=int, default=1, help="data-parallel processes sharing each batch")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--feature-dim", type=int, default=ModelConfig.feature_dim)
+    p.add_argument("--encoder-blocks", type=int, default=ModelConfig.encoder_blocks)
+    p.add_argument("--classifier-blocks", type=int, default=ModelConfig.classifier_blocks)
+    p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt when it exists")
+    p.add_argument("--max-minutes", type=float, default=None, help="checkpoint and stop after this wall time")
+    p.add_argument("--max-steps", type=int, default=None, help="checkpoint and stop after this many optimizer steps")
+    p.add_argument("--ckpt-minutes", type=float, default=10.0, help="checkpoint interval within an epoch")
+    p.add_argument("--log-every", type=int, default=10, help="print training progress every N optimizer steps")
+    args = p.parse_args(argv)
+    if args.val_max_points is None:
+        args.val_max_points = args.max_points
+    if args.batch < 1 or args.epochs < 0 or args.workers < 1:
+        p.error("--batch and --workers must be >= 1 and --epochs >= 0")
+    if args.workers > 1 and args.device != "cpu":
+        p.error("--workers > 1 is for CPU training")
+    return args
+
+
+def model_config(args) -> ModelConfig:
+    return ModelConfig(
+        feature_dim=args.feature_dim, encoder_blocks=args.encoder_blocks, classifier_blocks=args.classifier_blocks
+    )
+
+
+def to_tensors(prepared, device):
+    pts2d, pts3d, match = prepared
+    return (
+        torch.from_numpy(np.ascontiguousarray(pts2d)).to(device),
+        torch.from_numpy(np.ascontiguousarray(pts3d)).to(device),
+        torch.from_numpy(np.ascontiguousarray(match)).to(device),
+    )
+
+
+def epoch_batches(samples: list, epoch: int, args) -> list:
+    """This epoch's batches of subsampled training samples, a pure function of (seed, epoch)."""
+    order = np.random.default_rng([args.seed, epoch]).permutation(len(samples))
+    prepared = []
+    for index in order:
+        rng = np.random.default_rng([args.seed, epoch, int(index)])
+        drawn = subsample(samples[index], rng, tuple(args.outlier_rate), args.max_points, args.min_points)
+        if drawn is not None:
+            prepared.append(drawn)
+    return [prepared[i : i + args.batch] for i in range(0, len(prepared), args.batch)]
+
+
+def validation_set(samples: list, seed: int, max_points: int) -> list:
+    """Validation samples, subsampled once (no outlier control, at most `max_points` per set)."""
+    prepared = []
+    for index, sample in enumerate(samples):
+        rng = np.random.default_rng([seed, 1_000_003, index])
+        drawn = subsample(sample, rng, (0.0, 1.0), max_points, VAL_MIN_POINTS)
+        if drawn is not None:
+            prepared.append(drawn)
+    return prepared
+
+
+@torch.no_grad()
+def validate(model: GoMatch, val: list, device, group: Group = Group()) -> dict:
+    model.eval()
+    totals = Totals()
+    for prepared in group.share(val):
+        pts2d, pts3d, match = to_tensors(prepared, device)
+        totals.add(assess(model(pts2d, pts3d), match, model.config.match_threshold))
+    model.train()
+    return Totals.from_tensor(group.sum_(totals.to_tensor())).summary()
+
+
+def rng_states() -> dict:
+    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+
+
+def restore_rng_states(states: dict) -> None:
+    torch.set_rng_state(states["torch"])
+    np.random.set_state(states["numpy"])
+    random.setstate(states["python"])
+
+
+def atomic_save(obj, path: str) -> None:
+    tmp = path + ".tmp"
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def atomic_export(model: GoMatch, path: str) -> None:
+    tmp = path + ".tmp"
+    save_export(model, tmp)
+    os.replace(tmp, path)
+
+
+class Run:
+    """Model, optimizer and position of one training run, with checkpointing."""
+
+    def __init__(self, args):
+        self.args = args
+        self.device = torch.device(args.device)
+        self.out = args.out
+        self.checkpoint_path = os.path.join(args.out, CHECKPOINT)
+        self.epoch = 0
+        self.next_batch = 0
+        self.step = 0
+        self.best_val_loss = float("inf")
+        self.history = []
+        torch.manual_seed(args.seed)
+        np.random.seed(args.seed)
+        random.seed(args.seed)
+        self.model = GoMatch(model_config(args)).to(self.device)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=args.lr)
+
+    def fixed_options(self) -> dict:
+        return {name: getattr(self.args, name) for name in FIXED_ON_RESUME}
+
+    def save(self) -> None:
+        state = {
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "epoch": self.epoch,
+            "next_batch": self.next_batch,
+            "step": self.step,
+            "best_val_loss": self.best_val_loss,
+            "history": self.history,
+            "options": self.fixed_options(),
+            "config": self.model.config.to_json(),
+            "rng": rng_states(),
+        }
+        atomic_save(state, self.checkpoint_path)
+        atomic_export(self.model, os.path.join(self.out, "last.safetensors"))
+
+    def load(self) -> None:
+        state = torch.load(self.checkpoint_path, map_location=self.device, weights_only=False)
+        mine = self.fixed_options()
+        changed = {k: (v, mine.get(k)) for k, v in state["options"].items() if mine.get(k) != v}
+        if changed:
+            details = ", ".join(
+                f"--{k.replace('_', '-')}: checkpoint {a!r}, now {b!r}" for k, (a, b) in changed.items()
+            )
+            raise SystemExit(f"cannot resume {self.checkpoint_path}: options differ ({details})")
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.epoch = state["epoch"]
+        self.next_batch = state["next_batch"]
+        self.step = state["step"]
+        self.best_val_loss = state["best_val_loss"]
+        self.history = state["history"]
+        restore_rng_states(state["rng"])
+
+    def train_batch(self, batch: list, group: Group) -> Totals:
+        """One Adam step on the mean loss of `batch`; this process computes its share. Returns its totals."""
+        self.optimizer.zero_grad(set_to_none=True)
+        totals = Totals()
+        for prepared in group.share(batch):
+            pts2d, pts3d, match = to_tensors(prepared, self.device)
+            outcome = assess(self.model(pts2d, pts3d), match, self.model.config.match_threshold)
+            (outcome.loss / len(batch)).backward()
+            totals.add(outcome)
+        group.sum_gradients(self.model.parameters())
+        self.optimizer.step()
+        return totals
+
+
+def train(args, group: Group = Group()) -> dict:
+    """Run (or resume) training as process `group.rank` of `group.world`; returns the last validation summary
+    (empty if none ran). Only the main process prints and writes files."""
+
+    def log(message: str) -> None:
+        if group.is_main:
+            print(message, flush=True)
+
+    configure_cpu(args.threads)
+    os.makedirs(args.out, exist_ok=True)
+    run = Run(args)
+    if args.resume and os.path.exists(run.checkpoint_path):
+        run.load()
+        log(f"resumed {run.checkpoint_path}: epoch {run.epoch}, batch {run.next_batch}, step {run.step}")
+    elif args.resume:
+        log(f"no checkpoint in {args.out}; starting a new run")
+
+    samples = [s for path in args.train for s in load_samples(path)]
+    val = validation_set(load_samples(args.val), args.seed, args.val_max_points)
+    params = sum(p.numel() for p in run.model.parameters())
+    log(f"model {run.model.config.to_json()} ({params} parameters); {len(samples)} training samples, "
+        f"{len(val)} validation samples")  # fmt: skip
+
+    if not val:
+        raise SystemExit(f"no validation sample in {args.val} has >= {VAL_MIN_POINTS} points in both sets")
+    summary = run.history[-1] if run.history else {}
+    if args.max_steps is not None and run.step >= args.max_steps:
+        log(f"step limit {args.max_steps} already reached (step {run.step}); nothing to do")
+        return summary
+    start = last_ckpt = time.monotonic()
+    while run.epoch < args.epochs:
+        batches = epoch_batches(samples, run.epoch, args)
+        if not batches:
+            raise SystemExit(f"no training sample has >= {args.min_points} points after subsampling")
+        if run.next_batch == 0:
+            log(f"epoch {run.epoch}: {sum(len(b) for b in batches)} samples in {len(batches)} batches")
+        window, window_start = Totals(), time.monotonic()
+        while run.next_batch < len(batches):
+            window.merge(run.train_batch(batches[run.next_batch], group))
+            run.next_batch += 1
+            run.step += 1
+            now = time.monotonic()
+            if run.step % args.log_every == 0 or run.next_batch == len(batches):
+                window = Totals.from_tensor(group.sum_(window.to_tensor()))
+                s = window.summary()
+                log(f"epoch {run.epoch} batch {run.next_batch}/{len(batches)} step {run.step}: "
+                    f"loss {s['loss']:.4f} (match {s['match_loss']:.4f}, cls {s['cls_loss']:.4f}) "
+                    f"match P/R {s['match_precision']:.3f}/{s['match_recall']:.3f} "
+                    f"{window.samples / max(now - window_start, 1e-9):.2f} samples/s, "
+                    f"{(now - start) / 60:.1f} min, {time.process_time() / 60:.1f} CPU min")  # fmt: skip
+                window, window_start = Totals(), now
+            out_of_time = args.max_minutes is not None and now - start >= args.max_minutes * 60
+            out_of_steps = args.max_steps is not None and run.step >= args.max_steps
+            checkpoint_due = now - last_ckpt >= args.ckpt_minutes * 60
+            out_of_time, checkpoint_due = group.agree([out_of_time, checkpoint_due])
+            if out_of_time or out_of_steps or checkpoint_due:
+                if group.is_main:
+                    run.save()
+                last_ckpt = now
+                if out_of_time or out_of_steps:
+                    log(f"stopping at step {run.step} ({'time' if out_of_time else 'step'} limit); checkpoint saved")
+                    return summary
+
+        summary = validate(run.model, val, run.device, group)
+        summary["epoch"] = run.epoch
+        summary["step"] = run.step
+        improved = summary["loss"] < run.best_val_loss
+        log(f"epoch {run.epoch} validation: loss {summary['loss']:.4f} (match {summary['match_loss']:.4f}, "
+            f"cls {summary['cls_loss']:.4f}) match P/R {summary['match_precision']:.3f}/"
+            f"{summary['match_recall']:.3f} cls P/R@{run.model.config.match_threshold} "
+            f"{summary['cls_precision']:.3f}/{summary['cls_recall']:.3f}"
+            f"{' (best)' if improved else ''}")  # fmt: skip
+        if improved:
+            run.best_val_loss = summary["loss"]
+            if group.is_main:
+                atomic_export(run.model, os.path.join(args.out, "best.safetensors"))
+        run.history.append(summary)
+        run.epoch += 1
+        run.next_batch = 0
+        if group.is_main:
+            run.save()
+            with open(os.path.join(args.out, "history.jsonl"), "w") as f:
+                f.writelines(json.dumps(entry) + "\n" for entry in run.history)
+        last_ckpt = time.monotonic()
+    return summary
+
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    launch(train, args, args.workers)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
