@@ -10,7 +10,9 @@
 
 use crate::nn::linear::{accumulate, chunk_rows, store, store_point_major};
 use crate::nn::{exp, instance_norm, leaky_relu, linear, relu, Input, Moments};
-use crate::weights::{CrossLayerWeights, Linear, SelfLayerWeights, MAX_FEATURE_DIM, MAX_KNN};
+use crate::weights::{
+    CrossLayerWeights, Linear, SelfLayerWeights, MAX_FEATURE_DIM, MAX_HEADS, MAX_KNN,
+};
 
 /// Neighbour lists of a set: `graph[i][..k]` are the `k` nearest points of point `i`.
 pub type Neighbours = [u16; MAX_KNN];
@@ -200,28 +202,28 @@ pub fn cross_layer(
     pool: &mut [f32],
 ) {
     let d = w.query.rows();
+    let head_dim = d / heads.max(1);
     let slot = d * nx.max(ns);
     let (front, values) = pool.split_at_mut(2 * slot);
     {
         let (queries, keys) = front.split_at_mut(slot);
         let source = Input::one(src, d, ns);
-        linear(&w.key, &source, 0..d, |r, i0, v| {
-            store_point_major(keys, d, r, i0, v)
-        });
+        linear(&w.key, &source, 0..d, |r, i0, v| store(keys, ns, r, i0, v));
         linear(&w.value, &source, 0..d, |r, i0, v| {
-            store_point_major(values, d, r, i0, v)
+            store_point_major(values, d, head_major(r, heads, head_dim), i0, v)
         });
         linear(&w.query, &Input::one(x, d, nx), 0..d, |r, i0, v| {
-            store_point_major(queries, d, r, i0, v)
+            store(queries, nx, r, i0, v)
         });
-        attend(heads, queries, nx, keys, values, ns, d);
-        // Messages to channel-major (into the key slot), then merge (into the value slot).
-        for (i, message) in queries[..nx * d].chunks_exact(d).enumerate() {
-            for (c, &m) in message.iter().enumerate() {
-                keys[c * nx + i] = m;
-            }
-        }
-        linear(&w.merge, &Input::one(keys, d, nx), 0..d, |r, i0, v| {
+        let shape = AttentionShape {
+            heads,
+            head_dim,
+            nx,
+            ns,
+        };
+        attend(&shape, queries, keys, values);
+        // Messages (now in the query slot), merged into the value slot.
+        linear(&w.merge, &Input::one(queries, d, nx), 0..d, |r, i0, v| {
             store(values, nx, r, i0, v)
         });
     }
@@ -244,145 +246,262 @@ pub fn cross_layer(
     });
 }
 
-/// Source points per block of the online softmax.
-const SOURCE_BLOCK: usize = 64;
+/// Position of channel `c` in the head-major order: head `c % heads` first, then the
+/// dimension `c / heads` within the head.
+#[inline(always)]
+fn head_major(c: usize, heads: usize, head_dim: usize) -> usize {
+    (c % heads) * head_dim + c / heads
+}
 
-/// Replaces each query (point-major `nx x d`) by its attention message over the source
-/// keys and values (point-major `ns x d`).
-fn attend(heads: usize, q: &mut [f32], nx: usize, k: &[f32], v: &[f32], ns: usize, d: usize) {
-    match heads {
-        1 => attend_heads::<1, 8>(q, nx, k, v, ns, d),
-        2 => attend_heads::<2, 16>(q, nx, k, v, ns, d),
-        3 => attend_heads::<3, 24>(q, nx, k, v, ns, d),
-        4 => attend_heads::<4, 32>(q, nx, k, v, ns, d),
-        5 => attend_heads::<5, 40>(q, nx, k, v, ns, d),
-        6 => attend_heads::<6, 48>(q, nx, k, v, ns, d),
-        7 => attend_heads::<7, 56>(q, nx, k, v, ns, d),
-        _ => attend_heads::<8, 64>(q, nx, k, v, ns, d),
+/// Sizes of one attention call.
+struct AttentionShape {
+    heads: usize,
+    head_dim: usize,
+    /// Queries.
+    nx: usize,
+    /// Source points.
+    ns: usize,
+}
+
+/// Queries attended together: each key and value loaded serves all of them.
+const QUERY_BLOCK: usize = 4;
+/// Source points per block of the online softmax (a multiple of [`LANES`]).
+const SOURCE_BLOCK: usize = 64;
+/// Width of the inner register tiles.
+const LANES: usize = 8;
+
+/// Scaled dot-product attention (eq. 6-7) of the queries `q` (channel-major `d x nx`,
+/// replaced by the messages) over the keys `k` (channel-major `d x ns`) and values `v`
+/// (point-major, channels in [`head_major`] order), softmax over the source points.
+///
+/// Streamed: for each block of [`QUERY_BLOCK`] queries the sources are visited in blocks
+/// of [`SOURCE_BLOCK`] with an online softmax (running maximum and sum per query and
+/// head), so no `nx x ns` score matrix exists. Scores and messages are small register
+/// tiles (`QUERY_BLOCK x LANES`) summed in a fixed order: within a block over the head's
+/// dimensions (scores) or the block's sources (messages), then block after block.
+fn attend(shape: &AttentionShape, q: &mut [f32], k: &[f32], v: &[f32]) {
+    let AttentionShape {
+        heads,
+        head_dim,
+        nx,
+        ns,
+    } = *shape;
+    let d = heads * head_dim;
+    let sqrt_dim = libm::sqrtf(head_dim as f32);
+    let mut queries = [[0.0f32; QUERY_BLOCK]; MAX_FEATURE_DIM];
+    let mut acc = [[0.0f32; MAX_FEATURE_DIM]; QUERY_BLOCK];
+    let mut scores = [[[0.0f32; SOURCE_BLOCK]; MAX_HEADS]; QUERY_BLOCK];
+    let mut i0 = 0;
+    while i0 < nx {
+        let live = QUERY_BLOCK.min(nx - i0);
+        for (c, qc) in queries[..d].iter_mut().enumerate() {
+            *qc = [0.0; QUERY_BLOCK];
+            qc[..live].copy_from_slice(&q[c * nx + i0..c * nx + i0 + live]);
+        }
+        for a in acc.iter_mut() {
+            a[..d].fill(0.0);
+        }
+        let mut max = [[f32::NEG_INFINITY; MAX_HEADS]; QUERY_BLOCK];
+        let mut total = [[0.0f32; MAX_HEADS]; QUERY_BLOCK];
+        let mut j0 = 0;
+        while j0 < ns {
+            let len = SOURCE_BLOCK.min(ns - j0);
+            for h in 0..heads {
+                score_tiles(shape, h, &queries, k, j0, len, sqrt_dim, &mut scores);
+            }
+            for b in 0..QUERY_BLOCK {
+                for h in 0..heads {
+                    let s = &mut scores[b][h][..len];
+                    let block_max = s.iter().fold(f32::NEG_INFINITY, |m, &x| m.max(x));
+                    if block_max > max[b][h] {
+                        let correction = softmax_weight(max[b][h] - block_max);
+                        total[b][h] *= correction;
+                        for a in &mut acc[b][h * head_dim..(h + 1) * head_dim] {
+                            *a *= correction;
+                        }
+                        max[b][h] = block_max;
+                    }
+                    let m = max[b][h];
+                    for x in s.iter_mut() {
+                        *x = softmax_weight(*x - m);
+                    }
+                    total[b][h] += lane_sum(s);
+                }
+            }
+            for h in 0..heads {
+                message_tiles(shape, h, &scores, v, j0, len, &mut acc);
+            }
+            j0 += len;
+        }
+        for c in 0..d {
+            let (h, e) = (c % heads, c / heads);
+            for b in 0..live {
+                q[c * nx + i0 + b] = acc[b][h * head_dim + e] / total[b][h];
+            }
+        }
+        i0 += live;
     }
 }
 
-/// Repeats the per-head values over `L` channels (channel `c` belongs to head `c % H`).
+/// `scores[b][h][t] = (q_b . k_{j0 + t}) / sqrt(head_dim)` over the dimensions of head
+/// `h`, for the `len` sources from `j0`.
+#[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn spread<const H: usize, const L: usize>(per_head: &[f32; H]) -> [f32; L] {
-    let mut out = [0.0f32; L];
-    for (l, o) in out.iter_mut().enumerate() {
-        *o = per_head[l % H];
+fn score_tiles(
+    shape: &AttentionShape,
+    h: usize,
+    queries: &[[f32; QUERY_BLOCK]; MAX_FEATURE_DIM],
+    k: &[f32],
+    j0: usize,
+    len: usize,
+    sqrt_dim: f32,
+    scores: &mut [[[f32; SOURCE_BLOCK]; MAX_HEADS]; QUERY_BLOCK],
+) {
+    let mut t0 = 0;
+    while t0 < len {
+        let width = LANES.min(len - t0);
+        let tile = if width == LANES {
+            score_tile::<true>(shape, h, queries, k, j0 + t0, width)
+        } else {
+            score_tile::<false>(shape, h, queries, k, j0 + t0, width)
+        };
+        for (b, row) in tile.iter().enumerate() {
+            for (l, &x) in row[..width].iter().enumerate() {
+                scores[b][h][t0 + l] = x / sqrt_dim;
+            }
+        }
+        t0 += width;
+    }
+}
+
+/// Dot products of the block's queries with `width` keys from `j`, head `h`.
+#[inline(always)]
+fn score_tile<const FULL: bool>(
+    shape: &AttentionShape,
+    h: usize,
+    queries: &[[f32; QUERY_BLOCK]; MAX_FEATURE_DIM],
+    k: &[f32],
+    j: usize,
+    width: usize,
+) -> [[f32; LANES]; QUERY_BLOCK] {
+    let mut tile = [[0.0f32; LANES]; QUERY_BLOCK];
+    for e in 0..shape.head_dim {
+        let c = h + shape.heads * e;
+        let key = lanes::<FULL>(k, c * shape.ns + j, width);
+        for (row, &qb) in tile.iter_mut().zip(&queries[c]) {
+            for l in 0..LANES {
+                row[l] += qb * key[l];
+            }
+        }
+    }
+    tile
+}
+
+/// `acc[b][h dims] += sum_t p[b][h][t] v_{j0 + t}[h dims]` over the `len` sources from
+/// `j0` (the block's sum first, then added to the running message).
+#[inline(always)]
+fn message_tiles(
+    shape: &AttentionShape,
+    h: usize,
+    p: &[[[f32; SOURCE_BLOCK]; MAX_HEADS]; QUERY_BLOCK],
+    v: &[f32],
+    j0: usize,
+    len: usize,
+    acc: &mut [[f32; MAX_FEATURE_DIM]; QUERY_BLOCK],
+) {
+    let head_dim = shape.head_dim;
+    let mut e0 = 0;
+    while e0 < head_dim {
+        let width = LANES.min(head_dim - e0);
+        let first = h * head_dim + e0;
+        let tile = if width == LANES {
+            message_tile::<true>(shape, h, p, v, j0, len, first, width)
+        } else {
+            message_tile::<false>(shape, h, p, v, j0, len, first, width)
+        };
+        for (a, row) in acc.iter_mut().zip(&tile) {
+            for (x, &y) in a[first..first + width].iter_mut().zip(row) {
+                *x += y;
+            }
+        }
+        e0 += width;
+    }
+}
+
+/// The block's weighted sum of `width` value channels from `first` (head-major order).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn message_tile<const FULL: bool>(
+    shape: &AttentionShape,
+    h: usize,
+    p: &[[[f32; SOURCE_BLOCK]; MAX_HEADS]; QUERY_BLOCK],
+    v: &[f32],
+    j0: usize,
+    len: usize,
+    first: usize,
+    width: usize,
+) -> [[f32; LANES]; QUERY_BLOCK] {
+    let d = shape.heads * shape.head_dim;
+    let mut tile = [[0.0f32; LANES]; QUERY_BLOCK];
+    for t in 0..len {
+        let value = lanes::<FULL>(v, (j0 + t) * d + first, width);
+        for (row, pb) in tile.iter_mut().zip(p) {
+            let w = pb[h][t];
+            for l in 0..LANES {
+                row[l] += w * value[l];
+            }
+        }
+    }
+    tile
+}
+
+/// `x[at..at + width]` zero-padded to [`LANES`] values (`width == LANES` when `FULL`);
+/// zeros past the end of `x`.
+#[inline(always)]
+fn lanes<const FULL: bool>(x: &[f32], at: usize, width: usize) -> [f32; LANES] {
+    let src = x.get(at..).unwrap_or(&[]);
+    let mut out = [0.0f32; LANES];
+    if FULL {
+        if let Some(values) = src.first_chunk::<LANES>() {
+            out = *values;
+        }
+    } else {
+        for (o, &v) in out[..width].iter_mut().zip(src) {
+            *o = v;
+        }
     }
     out
 }
 
-/// Scaled dot-product attention with `H` interleaved heads (head dimension `d / H`),
-/// softmax over the source points computed online block by block (eq. 6-7). Channels
-/// are processed in runs of `L = 8 H` so that every lane belongs to a fixed head: the dot
-/// products accumulate in `L` lanes summed per head at the end, and the message update
-/// is an element-wise multiply-add with the per-head weights spread over the lanes.
-fn attend_heads<const H: usize, const L: usize>(
-    q: &mut [f32],
-    nx: usize,
-    k: &[f32],
-    v: &[f32],
-    ns: usize,
-    d: usize,
-) {
-    let sqrt_dim = libm::sqrtf((d / H) as f32);
-    let main = d - d % L;
-    let mut query = [0.0f32; MAX_FEATURE_DIM];
-    let mut acc = [0.0f32; MAX_FEATURE_DIM];
-    let mut scores = [[0.0f32; H]; SOURCE_BLOCK];
-    for qi in q[..nx * d].chunks_exact_mut(d) {
-        query[..d].copy_from_slice(qi);
-        acc[..d].fill(0.0);
-        let mut max = [f32::NEG_INFINITY; H];
-        let mut total = [0.0f32; H];
-        let mut j0 = 0;
-        while j0 < ns {
-            let len = SOURCE_BLOCK.min(ns - j0);
-            let mut block_max = max;
-            for (t, s) in scores[..len].iter_mut().enumerate() {
-                let kj = &k[(j0 + t) * d..(j0 + t + 1) * d];
-                let mut lanes = [0.0f32; L];
-                for (qc, kc) in query[..main]
-                    .chunks_exact(L)
-                    .zip(kj[..main].chunks_exact(L))
-                {
-                    for l in 0..L {
-                        lanes[l] += qc[l] * kc[l];
-                    }
-                }
-                let mut dot = [0.0f32; H];
-                for (l, &x) in lanes.iter().enumerate() {
-                    dot[l % H] += x;
-                }
-                for c in main..d {
-                    dot[c % H] += query[c] * kj[c];
-                }
-                for h in 0..H {
-                    s[h] = dot[h] / sqrt_dim;
-                    block_max[h] = block_max[h].max(s[h]);
-                }
-            }
-            if block_max != max {
-                let mut correction = [0.0f32; H];
-                for h in 0..H {
-                    correction[h] = exp(max[h] - block_max[h]);
-                    total[h] *= correction[h];
-                }
-                scale_spread::<H, L>(&mut acc[..d], &correction, None);
-                max = block_max;
-            }
-            for (t, s) in scores[..len].iter().enumerate() {
-                let vj = &v[(j0 + t) * d..(j0 + t + 1) * d];
-                let mut p = [0.0f32; H];
-                for h in 0..H {
-                    p[h] = exp(s[h] - max[h]);
-                    total[h] += p[h];
-                }
-                scale_spread::<H, L>(&mut acc[..d], &p, Some(vj));
-            }
-            j0 += len;
-        }
-        for (c, (o, &a)) in qi.iter_mut().zip(&acc[..d]).enumerate() {
-            *o = a / total[c % H];
-        }
+/// Below this, a softmax term `exp(x - max)` (at most `1.6e-28` of the largest term, far
+/// below f32 resolution of the sum, which is at least 1) counts as 0: no subnormal
+/// products, which are slow on common CPUs, and the same result.
+const SOFTMAX_CUTOFF: f32 = -64.0;
+
+/// `exp(x)` for `x >= SOFTMAX_CUTOFF`, 0 below (`x <= 0` is the offset from the maximum).
+#[inline(always)]
+fn softmax_weight(x: f32) -> f32 {
+    let e = exp(x);
+    if x < SOFTMAX_CUTOFF {
+        0.0
+    } else {
+        e
     }
 }
 
-/// `acc[c] *= w[c % H]` (no `values`) or `acc[c] += w[c % H] * values[c]`.
-#[inline(always)]
-fn scale_spread<const H: usize, const L: usize>(
-    acc: &mut [f32],
-    w: &[f32; H],
-    values: Option<&[f32]>,
-) {
-    let d = acc.len();
-    let main = d - d % L;
-    let pattern = spread::<H, L>(w);
-    match values {
-        Some(values) => {
-            for (a, x) in acc[..main]
-                .chunks_exact_mut(L)
-                .zip(values[..main].chunks_exact(L))
-            {
-                for l in 0..L {
-                    a[l] += pattern[l] * x[l];
-                }
-            }
-            for c in main..d {
-                acc[c] += w[c % H] * values[c];
-            }
-        }
-        None => {
-            for a in acc[..main].chunks_exact_mut(L) {
-                for l in 0..L {
-                    a[l] *= pattern[l];
-                }
-            }
-            for c in main..d {
-                acc[c] *= w[c % H];
-            }
+/// Sum of the values in [`LANES`] interleaved partial sums, then across them in order.
+fn lane_sum(values: &[f32]) -> f32 {
+    let mut lanes = [0.0f32; LANES];
+    let mut chunks = values.chunks_exact(LANES);
+    for chunk in &mut chunks {
+        for l in 0..LANES {
+            lanes[l] += chunk[l];
         }
     }
+    for (l, &x) in chunks.remainder().iter().enumerate() {
+        lanes[l] += x;
+    }
+    lanes.iter().sum()
 }
 
 #[cfg(test)]
@@ -414,34 +533,66 @@ mod tests {
         let mut q = [0.0f32; 4]; // one query, zero => all scores 0
         let k = [1.0f32; 3 * 4];
         let v: [f32; 12] = core::array::from_fn(|i| i as f32);
-        attend(2, &mut q, 1, &k, &v, 3, d);
-        for c in 0..d {
-            let mean = (v[c] + v[4 + c] + v[8 + c]) / 3.0;
-            assert!((q[c] - mean).abs() < 1e-6, "{c}: {} vs {mean}", q[c]);
+        let shape = AttentionShape {
+            heads: 2,
+            head_dim: 2,
+            nx: 1,
+            ns: 3,
+        };
+        attend(&shape, &mut q, &k, &v);
+        for (c, &got) in q.iter().enumerate().take(d) {
+            let at = head_major(c, 2, 2);
+            let mean = (v[at] + v[4 + at] + v[8 + at]) / 3.0;
+            assert!((got - mean).abs() < 1e-6, "{c}: {got} vs {mean}");
         }
     }
 
-    /// Online softmax over several source blocks equals the direct softmax.
+    /// Online softmax over several source blocks, a partial query block and a head
+    /// dimension that is not a multiple of the tile width equal the direct softmax.
     #[test]
     fn streamed_softmax_matches_direct_softmax() {
-        let (d, ns) = (4, 70);
-        let query: [f32; 4] = [0.3, -0.2, 0.5, 0.1];
-        let k: [f32; 280] = core::array::from_fn(|i| libm::sinf(i as f32 * 0.37));
-        let v: [f32; 280] = core::array::from_fn(|i| libm::cosf(i as f32 * 0.11));
+        const D: usize = 6;
+        const NX: usize = 6;
+        const NS: usize = 70;
+        let (heads, head_dim) = (2, 3);
+        let query: [f32; D * NX] = core::array::from_fn(|i| libm::sinf(i as f32 * 0.71));
+        let k: [f32; D * NS] = core::array::from_fn(|i| 2.0 * libm::sinf(i as f32 * 0.37));
+        let v_channels: [f32; D * NS] = core::array::from_fn(|i| libm::cosf(i as f32 * 0.11));
+        let mut v = [0.0f32; D * NS];
+        for c in 0..D {
+            for j in 0..NS {
+                v[j * D + head_major(c, heads, head_dim)] = v_channels[c * NS + j];
+            }
+        }
         let mut q = query;
-        attend(4, &mut q, 1, &k, &v, ns, d);
-        for c in 0..d {
-            let s: [f32; 70] = core::array::from_fn(|j| query[c] * k[j * d + c]);
-            let m = s.iter().cloned().fold(f32::MIN, f32::max);
-            let z: f32 = s.iter().map(|&x| libm::expf(x - m)).sum();
-            let expected: f32 = (0..ns)
-                .map(|j| libm::expf(s[j] - m) / z * v[j * d + c])
-                .sum();
-            assert!(
-                (q[c] - expected).abs() < 1e-5,
-                "{c}: {} vs {expected}",
-                q[c]
-            );
+        let shape = AttentionShape {
+            heads,
+            head_dim,
+            nx: NX,
+            ns: NS,
+        };
+        attend(&shape, &mut q, &k, &v);
+        for i in 0..NX {
+            for c in 0..D {
+                let h = c % heads;
+                let s: [f64; NS] = core::array::from_fn(|j| {
+                    (h..D)
+                        .step_by(heads)
+                        .map(|cc| f64::from(query[cc * NX + i]) * f64::from(k[cc * NS + j]))
+                        .sum::<f64>()
+                        / libm::sqrt(head_dim as f64)
+                });
+                let m = s.iter().cloned().fold(f64::MIN, f64::max);
+                let z: f64 = s.iter().map(|&x| libm::exp(x - m)).sum();
+                let expected: f64 = (0..NS)
+                    .map(|j| libm::exp(s[j] - m) / z * f64::from(v_channels[c * NS + j]))
+                    .sum();
+                let got = f64::from(q[c * NX + i]);
+                assert!(
+                    (got - expected).abs() < 1e-5,
+                    "{i} {c}: {got} vs {expected}"
+                );
+            }
         }
     }
 

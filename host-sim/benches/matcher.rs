@@ -13,6 +13,8 @@ use std::time::{Duration, Instant};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use gomatch::sinkhorn::{PlanScalar, Transport};
 use gomatch::{Matcher, Model, Observer, Precision, Stage};
+use gomatch_tools::convert::{convert_with, Options};
+use gomatch_tools::quantize::Rounding;
 use half::f16;
 
 const CAPACITY: usize = 1024;
@@ -93,6 +95,9 @@ impl<S: PlanScalar> Observer<S> for StageClock {
     }
 }
 
+/// Runs of the stage breakdown; the median per stage is printed.
+const BREAKDOWN_RUNS: usize = 5;
+
 fn breakdown<S: PlanScalar>(
     matcher: &Mutex<Matcher<CAPACITY, S>>,
     model: &Model<'_>,
@@ -101,22 +106,38 @@ fn breakdown<S: PlanScalar>(
 ) {
     let (query, db) = pair(n);
     let mut m = matcher.lock().unwrap();
-    let start = Instant::now();
-    m.encode_query(model, &query).unwrap();
-    let mut clock = StageClock {
-        last: Instant::now(),
-        spent: vec![("encoder (query)", start.elapsed())],
+    let mut runs: Vec<Vec<(&'static str, Duration)>> = Vec::new();
+    let (mut matches, mut iterations) = (0, 0);
+    for _ in 0..BREAKDOWN_RUNS {
+        let start = Instant::now();
+        m.encode_query(model, &query).unwrap();
+        let mut clock = StageClock {
+            last: Instant::now(),
+            spent: vec![("encoder (query)", start.elapsed())],
+        };
+        let set = m.match_view_observed(model, &db, &mut clock).unwrap();
+        (matches, iterations) = (set.len(), set.sinkhorn_iterations());
+        clock.lap("mutual assignment + classifier");
+        runs.push(clock.spent);
+    }
+    let median = |values: &mut Vec<Duration>| {
+        values.sort();
+        values[values.len() / 2]
     };
-    let set = m.match_view_observed(model, &db, &mut clock).unwrap();
-    let (matches, iterations) = (set.len(), set.sinkhorn_iterations());
-    clock.lap("mutual assignment + classifier");
-    let total: Duration = clock.spent.iter().map(|(_, d)| *d).sum();
+    let mut totals: Vec<Duration> = runs
+        .iter()
+        .map(|r| r.iter().map(|(_, d)| *d).sum())
+        .collect();
     println!(
-        "stage breakdown {label} N={n}: total {:.1} ms, {matches} matches, {iterations} Sinkhorn iterations",
-        total.as_secs_f64() * 1e3
+        "stage breakdown {label} N={n}: total {:.1} ms (median of {BREAKDOWN_RUNS}), {matches} matches, {iterations} Sinkhorn iterations",
+        median(&mut totals).as_secs_f64() * 1e3
     );
-    for (name, d) in &clock.spent {
-        println!("  {name:32} {:8.2} ms", d.as_secs_f64() * 1e3);
+    for (stage, (name, _)) in runs[0].iter().enumerate() {
+        let mut times: Vec<Duration> = runs.iter().map(|r| r[stage].1).collect();
+        println!(
+            "  {name:32} {:8.2} ms",
+            median(&mut times).as_secs_f64() * 1e3
+        );
     }
 }
 
@@ -134,7 +155,13 @@ fn bench(c: &mut Criterion) {
     let mut group = c.benchmark_group("matcher");
     group.sample_size(10).warm_up_time(Duration::from_secs(1));
     for precision in [Precision::F32, Precision::F16, Precision::Int8] {
-        let (blob, _) = gomatch_tools::convert::convert(&checkpoint, precision).unwrap();
+        // The rounding of int8 levels does not change the speed: round to nearest (no
+        // calibration run).
+        let options = Options {
+            rounding: Rounding::Nearest,
+            ..Options::new(precision)
+        };
+        let (blob, _) = convert_with(&checkpoint, &options).unwrap();
         let model = Model::from_bytes(&blob).unwrap();
         let name = format!("{precision:?}").to_lowercase();
         for n in [256, 1024] {

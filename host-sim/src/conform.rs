@@ -40,6 +40,10 @@ pub struct Args {
     /// Checkpoint (default: weights.safetensors beside the fixture folder).
     #[arg(long)]
     pub weights: Option<PathBuf>,
+    /// A model blob (`gomatch-tools convert`) to run instead of converting the
+    /// checkpoint; `--precision` and `--weights` are then ignored.
+    #[arg(long)]
+    pub model: Option<PathBuf>,
     /// Where to write the JSON report (printed to stdout as well).
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -88,12 +92,19 @@ pub struct Report {
 
 /// Runs the command.
 pub fn run(args: &Args) -> Result<()> {
-    let report = conform(
-        &args.fixture,
-        args.weights.as_deref(),
-        args.precision.into(),
-        args.plan,
-    )?;
+    let report = match &args.model {
+        Some(path) => {
+            let blob =
+                std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+            conform_blob(&args.fixture, &blob, args.plan)?
+        }
+        None => conform(
+            &args.fixture,
+            args.weights.as_deref(),
+            args.precision.into(),
+            args.plan,
+        )?,
+    };
     let json = serde_json::to_string_pretty(&report)?;
     println!("{json}");
     if let Some(path) = &args.json {
@@ -119,7 +130,13 @@ pub fn conform(
     let checkpoint =
         std::fs::read(&weights).with_context(|| format!("reading {}", weights.display()))?;
     let (blob, _) = gomatch_tools::convert::convert(&checkpoint, precision)?;
-    let model = Model::from_bytes(&blob).map_err(|e| anyhow::anyhow!("loading blob: {e}"))?;
+    conform_blob(fixture, &blob, plan)
+}
+
+/// Runs the matcher with the model blob `blob` on the fixture and compares every stage.
+pub fn conform_blob(fixture: &Path, blob: &[u8], plan: PlanArg) -> Result<Report> {
+    let model = Model::from_bytes(blob).map_err(|e| anyhow::anyhow!("loading blob: {e}"))?;
+    let precision = model.precision();
     let pts2d = points(&fixture.join("pts2d.npy"))?;
     let pts3d = points(&fixture.join("pts3d_bvs.npy"))?;
     let mut observer = Comparison {

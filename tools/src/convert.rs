@@ -17,6 +17,9 @@ use gomatch::weights::{
 };
 use safetensors::{Dtype, SafeTensors};
 
+use crate::calibration::{self, FitOptions};
+use crate::quantize::{self, Int8Tensor, Rounding, ScaleSearch};
+
 /// Command-line arguments of `convert`.
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -30,10 +33,104 @@ pub struct Args {
     #[arg(long)]
     pub output: PathBuf,
     /// Tensors stored in f32 whatever the precision, comma-separated blob names
-    /// (`encoder.block.fused[0]`, ...); empty for none.
-    #[arg(long, value_delimiter = ',', default_values = DEFAULT_KEEP_F32)]
-    pub keep_f32: Vec<String>,
+    /// (`encoder.block.fused[0]`, ...); empty for none. Default: the encoder input and
+    /// first block for f16, the encoder input for int8.
+    #[arg(long, value_delimiter = ',')]
+    pub keep_f32: Option<Vec<String>>,
+    /// Tensors stored in f16 when the precision is int8, comma-separated blob names;
+    /// none by default.
+    #[arg(long, value_delimiter = ',')]
+    pub keep_f16: Vec<String>,
+    /// Rounding of int8 weights.
+    #[arg(long, value_enum, default_value = "gptq-corrected")]
+    pub rounding: Rounding,
+    /// Scale of each int8 row.
+    #[arg(long, value_enum, default_value = "max-abs")]
+    pub scale: ScaleSearch,
+    /// Synthetic calibration pairs for the int8 rounding.
+    #[arg(long, default_value_t = CALIBRATION_PAIRS)]
+    pub calibration_pairs: usize,
+    /// Seed of the calibration pairs.
+    #[arg(long, default_value_t = CALIBRATION_SEED)]
+    pub calibration_seed: u64,
 }
+
+impl Args {
+    /// The conversion options these arguments ask for.
+    pub fn options(&self) -> Options {
+        let names = |list: &[String]| -> Vec<String> {
+            list.iter().filter(|k| !k.is_empty()).cloned().collect()
+        };
+        let defaults = Options::new(self.precision.into());
+        Options {
+            keep_f32: self
+                .keep_f32
+                .as_deref()
+                .map_or(defaults.keep_f32.clone(), names),
+            keep_f16: names(&self.keep_f16),
+            rounding: self.rounding,
+            scale: self.scale,
+            calibration_pairs: self.calibration_pairs,
+            calibration_seed: self.calibration_seed,
+            ..defaults
+        }
+    }
+}
+
+/// How to convert: precision, per-tensor exceptions and the int8 method.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Options {
+    /// Precision of every tensor not named below.
+    pub precision: Precision,
+    /// Tensors kept in f32.
+    pub keep_f32: Vec<String>,
+    /// Tensors stored in f16 when `precision` is int8.
+    pub keep_f16: Vec<String>,
+    /// Rounding of int8 tensors.
+    pub rounding: Rounding,
+    /// Scale of each int8 row.
+    pub scale: ScaleSearch,
+    /// Calibration pairs for [`Rounding::Gptq`].
+    pub calibration_pairs: usize,
+    /// Their seed.
+    pub calibration_seed: u64,
+}
+
+impl Options {
+    /// The defaults for `precision`.
+    pub fn new(precision: Precision) -> Self {
+        let keep_f32 = match precision {
+            Precision::F32 => &[][..],
+            Precision::F16 => DEFAULT_KEEP_F32_F16,
+            Precision::Int8 => DEFAULT_KEEP_F32_INT8,
+        };
+        Options {
+            precision,
+            keep_f32: keep_f32.iter().map(|s| s.to_string()).collect(),
+            keep_f16: vec![],
+            rounding: Rounding::GptqCorrected,
+            scale: ScaleSearch::MaxAbs,
+            calibration_pairs: CALIBRATION_PAIRS,
+            calibration_seed: CALIBRATION_SEED,
+        }
+    }
+
+    /// Storage precision of the tensor named `name`.
+    pub fn precision_of(&self, name: &str) -> Precision {
+        if self.keep_f32.iter().any(|k| k == name) {
+            Precision::F32
+        } else if self.precision == Precision::Int8 && self.keep_f16.iter().any(|k| k == name) {
+            Precision::F16
+        } else {
+            self.precision
+        }
+    }
+}
+
+/// Default number of synthetic calibration pairs.
+pub const CALIBRATION_PAIRS: usize = 32;
+/// Default seed of the calibration pairs (the fixtures use seeds 0 to 3).
+pub const CALIBRATION_SEED: u64 = 1000;
 
 /// Weight precision on the command line.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -60,13 +157,7 @@ impl From<PrecisionArg> for Precision {
 pub fn run(args: &Args) -> Result<()> {
     let bytes =
         std::fs::read(&args.input).with_context(|| format!("reading {}", args.input.display()))?;
-    let keep: Vec<&str> = args
-        .keep_f32
-        .iter()
-        .map(String::as_str)
-        .filter(|k| !k.is_empty())
-        .collect();
-    let (blob, config) = convert_keeping(&bytes, args.precision.into(), &keep)?;
+    let (blob, config) = convert_with(&bytes, &args.options())?;
     std::fs::write(&args.output, &blob)
         .with_context(|| format!("writing {}", args.output.display()))?;
     println!(
@@ -105,32 +196,40 @@ pub struct FloatLinear {
     pub bias: Vec<f32>,
 }
 
-/// Tensors kept in f32 by default whatever the precision: the encoder input layer and
-/// first residual block. On the reference fixtures they dominate the error of f16
-/// weights (f16 match agreement 0.932 -> 1.0 on the 300 x 500 fixture for +66 KiB).
-pub const DEFAULT_KEEP_F32: &[&str] = &[
+/// Tensors kept in f32 by default for f16 weights: the encoder input layer and first
+/// residual block. On the reference fixtures they dominate the error of f16 weights (f16
+/// match agreement 0.932 -> 1.0 on the 300 x 500 fixture for +66 KiB).
+pub const DEFAULT_KEEP_F32_F16: &[&str] = &[
     "encoder.input[0]",
     "encoder.block.fused[0]",
     "encoder.block.conv2[0]",
 ];
 
-/// Converts checkpoint bytes into a blob of the given precision, with the
-/// [`DEFAULT_KEEP_F32`] tensors in f32.
+/// Tensors kept in f32 by default for int8 weights: the encoder input layer (256
+/// weights). Alone in int8 it costs more agreement than any other tensor (0.887, the
+/// others 0.987 or more on synthetic pairs, `gomatch-tools sensitivity`), and a layer
+/// on two coordinates leaves GPTQ nothing to compensate with.
+pub const DEFAULT_KEEP_F32_INT8: &[&str] = &["encoder.input[0]"];
+
+/// Converts checkpoint bytes into a blob of the given precision with the default
+/// [`Options`].
 pub fn convert(safetensors: &[u8], precision: Precision) -> Result<(Vec<u8>, ModelConfig)> {
-    convert_keeping(safetensors, precision, DEFAULT_KEEP_F32)
+    convert_with(safetensors, &Options::new(precision))
 }
 
-/// Converts checkpoint bytes into a blob of the given precision, keeping the tensors
-/// named in `keep_f32` (e.g. `encoder.block.fused[0]`) in f32.
-pub fn convert_keeping(
-    safetensors: &[u8],
-    precision: Precision,
-    keep_f32: &[&str],
-) -> Result<(Vec<u8>, ModelConfig)> {
+/// Converts checkpoint bytes into a blob as `options` ask.
+pub fn convert_with(safetensors: &[u8], options: &Options) -> Result<(Vec<u8>, ModelConfig)> {
+    let (config, tensors) = float_tensors(safetensors)?;
+    Ok((write_blob(&config, options, &tensors)?, config))
+}
+
+/// The checkpoint's tensors in blob order (residual blocks fused, EdgeConv weights
+/// split), in f32, with the configuration.
+pub fn float_tensors(safetensors: &[u8]) -> Result<(ModelConfig, Vec<FloatLinear>)> {
     let checkpoint = Checkpoint::parse(safetensors)?;
     let config = checkpoint.config()?;
     let tensors = checkpoint.blob_tensors(&config)?;
-    Ok((write_blob(&config, precision, keep_f32, &tensors)?, config))
+    Ok((config, tensors))
 }
 
 /// Every tensor of the checkpoint, checked for dtype and finiteness, keyed by name.
@@ -459,12 +558,23 @@ fn apply_metadata(config: &mut ModelConfig, json: &str) -> Result<()> {
     Ok(())
 }
 
-/// Serialises the blob: preamble, header, tensor records, CRC-32.
+/// Serialises the blob: preamble, header, tensor records, CRC-32. int8 tensors are
+/// rounded as `options` ask; [`Rounding::Gptq`] first runs the f32 model on the synthetic
+/// calibration pairs ([`crate::calibration`]).
 pub fn write_blob(
     config: &ModelConfig,
-    precision: Precision,
-    keep_f32: &[&str],
+    options: &Options,
     tensors: &[FloatLinear],
+) -> Result<Vec<u8>> {
+    write_blob_with(config, options, tensors, None)
+}
+
+/// [`write_blob`] with the int8 tensors given (fitted when `None`).
+pub fn write_blob_with(
+    config: &ModelConfig,
+    options: &Options,
+    tensors: &[FloatLinear],
+    int8: Option<&[Option<Int8Tensor>]>,
 ) -> Result<Vec<u8>> {
     ensure!(
         tensors.len() == tensor_count(config),
@@ -472,13 +582,7 @@ pub fn write_blob(
         tensors.len(),
         tensor_count(config)
     );
-    let mut blob = preamble().to_vec();
-    let header = BlobHeader {
-        config: *config,
-        precision,
-        tensor_count: u16::try_from(tensors.len())?,
-    };
-    blob.extend(postcard::to_allocvec(&header)?);
+    let mut precisions = Vec::with_capacity(tensors.len());
     for (index, t) in tensors.iter().enumerate() {
         let spec = tensor_spec(config, index).context("tensor index past the layout")?;
         ensure!(
@@ -492,18 +596,30 @@ pub fn write_blob(
             spec.cols,
             spec.bias
         );
-        let name = spec.name.to_string();
-        let tensor_precision = if keep_f32.iter().any(|k| name == *k) {
-            Precision::F32
-        } else {
-            precision
-        };
-        let (weights, scales) = encode_weights(t, tensor_precision);
+        precisions.push(options.precision_of(&spec.name.to_string()));
+    }
+    let fitted;
+    let int8 = match int8 {
+        Some(given) => given,
+        None => {
+            fitted = int8_tensors(config, options, tensors, &precisions)?;
+            &fitted[..]
+        }
+    };
+    let mut blob = preamble().to_vec();
+    let header = BlobHeader {
+        config: *config,
+        precision: options.precision,
+        tensor_count: u16::try_from(tensors.len())?,
+    };
+    blob.extend(postcard::to_allocvec(&header)?);
+    for ((t, &precision), q) in tensors.iter().zip(&precisions).zip(int8) {
+        let (weights, scales) = encode_weights(t, precision, q.as_ref())?;
         let bias: Vec<u8> = t.bias.iter().flat_map(|b| b.to_le_bytes()).collect();
         let record = TensorRecord {
             rows: t.rows as u32,
             cols: t.cols as u32,
-            precision: tensor_precision,
+            precision,
             weights: &weights,
             scales: &scales,
             bias: &bias,
@@ -515,35 +631,80 @@ pub fn write_blob(
     Ok(blob)
 }
 
+/// The precision of every tensor under `options`.
+pub fn precisions(config: &ModelConfig, options: &Options) -> Vec<Precision> {
+    (0..tensor_count(config))
+        .filter_map(|i| tensor_spec(config, i))
+        .map(|spec| options.precision_of(&spec.name.to_string()))
+        .collect()
+}
+
+/// The int8 encoding of every tensor stored in int8 (`None` for the others), rounded as
+/// `options` ask.
+pub fn int8_tensors(
+    config: &ModelConfig,
+    options: &Options,
+    tensors: &[FloatLinear],
+    precisions: &[Precision],
+) -> Result<Vec<Option<Int8Tensor>>> {
+    if !precisions.contains(&Precision::Int8) {
+        return Ok(vec![None; tensors.len()]);
+    }
+    let correct = match options.rounding {
+        Rounding::Nearest => {
+            return Ok(tensors
+                .iter()
+                .zip(precisions)
+                .map(|(t, &p)| {
+                    (p == Precision::Int8).then(|| quantize::round_to_nearest(t, options.scale))
+                })
+                .collect())
+        }
+        Rounding::Gptq => false,
+        Rounding::GptqCorrected => true,
+    };
+    let reference = write_blob(
+        config,
+        &Options {
+            precision: Precision::F32,
+            keep_f32: vec![],
+            keep_f16: vec![],
+            ..options.clone()
+        },
+        tensors,
+    )?;
+    let pairs = calibration::synthetic_pairs(options.calibration_pairs, options.calibration_seed);
+    let fit = FitOptions {
+        scale: options.scale,
+        correct,
+    };
+    calibration::fit_int8(config, tensors, precisions, &reference, &pairs, fit)
+}
+
 /// Weight bytes and (int8) scale bytes of one tensor.
-fn encode_weights(t: &FloatLinear, precision: Precision) -> (Vec<u8>, Vec<u8>) {
-    match precision {
-        Precision::F32 => (
-            t.weights.iter().flat_map(|w| w.to_le_bytes()).collect(),
-            vec![],
-        ),
-        Precision::F16 => (
+fn encode_weights(
+    t: &FloatLinear,
+    precision: Precision,
+    int8: Option<&Int8Tensor>,
+) -> Result<(Vec<u8>, Vec<u8>)> {
+    Ok(match (precision, int8) {
+        (Precision::F16, _) => (
             t.weights
                 .iter()
                 .flat_map(|&w| half::f16::from_f32(w).to_bits().to_le_bytes())
                 .collect(),
             vec![],
         ),
-        Precision::Int8 => {
-            let mut weights = Vec::with_capacity(t.weights.len());
-            let mut scales = Vec::with_capacity(t.rows * 4);
-            for row in t.weights.chunks_exact(t.cols) {
-                let max = row.iter().fold(0.0f32, |m, w| m.max(w.abs()));
-                let scale = if max > 0.0 { max / 127.0 } else { 1.0 };
-                weights.extend(
-                    row.iter()
-                        .map(|&w| ((w / scale).round().clamp(-127.0, 127.0) as i8) as u8),
-                );
-                scales.extend(scale.to_le_bytes());
-            }
-            (weights, scales)
-        }
-    }
+        (Precision::Int8, Some(q)) => (
+            q.levels.iter().map(|&l| l as u8).collect(),
+            q.scales.iter().flat_map(|s| s.to_le_bytes()).collect(),
+        ),
+        (Precision::Int8, None) => bail!("int8 tensor without levels"),
+        (Precision::F32, _) => (
+            t.weights.iter().flat_map(|w| w.to_le_bytes()).collect(),
+            vec![],
+        ),
+    })
 }
 
 #[cfg(test)]
@@ -716,22 +877,5 @@ mod tests {
         .expect_err("3 heads do not divide 8")
         .to_string();
         assert!(err.contains("Heads"), "{err}");
-    }
-
-    #[test]
-    fn int8_rows_use_their_largest_weight_as_127() {
-        let t = FloatLinear {
-            rows: 2,
-            cols: 3,
-            weights: vec![0.5, -1.0, 0.25, 0.0, 0.0, 0.0],
-            bias: vec![],
-        };
-        let (w, s) = encode_weights(&t, Precision::Int8);
-        assert_eq!(
-            w.iter().map(|&b| b as i8).collect::<Vec<_>>(),
-            [64, -127, 32, 0, 0, 0]
-        );
-        assert_eq!(f32::from_le_bytes([s[0], s[1], s[2], s[3]]), 1.0 / 127.0);
-        assert_eq!(f32::from_le_bytes([s[4], s[5], s[6], s[7]]), 1.0);
     }
 }

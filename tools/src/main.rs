@@ -21,6 +21,10 @@ enum Command {
     Version,
     /// Convert a float32 safetensors checkpoint (reference layout) to a model blob.
     Convert(gomatch_tools::convert::Args),
+    /// Agreement of one model blob's matches with another's on synthetic pairs.
+    Agreement(gomatch_tools::agreement::Args),
+    /// Per-tensor int8 sensitivity of the matches.
+    Sensitivity(gomatch_tools::sensitivity::Args),
     /// RAM, stack, heap and flash per capacity, view count and precision.
     MemReport(gomatch_tools::mem_report::Args),
 }
@@ -29,6 +33,8 @@ fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Version => println!("gomatch {}", env!("CARGO_PKG_VERSION")),
         Command::Convert(args) => gomatch_tools::convert::run(&args)?,
+        Command::Agreement(args) => gomatch_tools::agreement::run(&args)?,
+        Command::Sensitivity(args) => gomatch_tools::sensitivity::run(&args)?,
         Command::MemReport(args) => gomatch_tools::mem_report::run(&args)?,
     }
     Ok(())

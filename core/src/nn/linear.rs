@@ -137,8 +137,6 @@ const PANEL_MAX_ROWS: usize = 64;
 /// Points per tile: the input tile (`cols x TILE_POINTS`) stays in cache while every row
 /// of the panel passes over it.
 const TILE_POINTS: usize = 64;
-/// A zero row, the weights of the padding rows of a partial row block.
-const ZERO_ROW: [f32; MAX_INPUT] = [0.0; MAX_INPUT];
 
 /// Most output rows a panel holds for a layer of `cols` inputs (a multiple of
 /// [`ROW_BLOCK`]).
@@ -156,10 +154,13 @@ pub fn chunk_rows(cols: usize, scratch: usize, n: usize) -> usize {
 /// Computes output rows `rows` of `w` applied to `input` and hands each finished block of
 /// up to [`COL_BLOCK`] points to `emit(row, first_point, values)` (`values.len()` is the
 /// number of valid points), in no particular order. The caller keeps
-/// `w.cols() == input.channels() <= MAX_INPUT` and every part long enough for its rows.
+/// `w.cols() == input.channels() <= MAX_INPUT` and every part long enough for its rows
+/// (a part too short reads as zeros).
 ///
-/// Rows are decoded a panel at a time (each weight once per call); for each tile of
-/// points, every row block of the panel passes over the cached input tile.
+/// Rows are decoded a panel at a time (each weight once per call), interleaved by row
+/// block (`[input][ROW_BLOCK]`) so the inner loop reads the weights of a block with one
+/// load; for each tile of points, every row block of the panel passes over the cached
+/// input tile. Each output sums over the inputs in order.
 pub fn linear<W: WeightRows>(
     w: &W,
     input: &Input<'_>,
@@ -169,17 +170,27 @@ pub fn linear<W: WeightRows>(
     debug_assert_eq!(w.cols(), input.channels());
     let k = w.cols().min(MAX_INPUT);
     let panel_len = panel_rows(k);
-    let mut panel = [0.0f32; PANEL_FLOATS];
+    let mut panel = [[0.0f32; ROW_BLOCK]; PANEL_FLOATS / ROW_BLOCK];
+    let mut decoded = [0.0f32; MAX_INPUT];
     let mut scale = [0.0f32; PANEL_MAX_ROWS];
     let mut bias = [0.0f32; PANEL_MAX_ROWS];
     let n = input.n;
     let mut p0 = rows.start;
     while p0 < rows.end {
         let count = panel_len.min(rows.end - p0);
-        for r in 0..count {
-            w.decode(p0 + r, &mut panel[r * k..(r + 1) * k]);
-            scale[r] = w.scale(p0 + r);
-            bias[r] = w.bias(p0 + r);
+        for r in 0..count.next_multiple_of(ROW_BLOCK) {
+            let lanes = &mut panel[r / ROW_BLOCK * k..(r / ROW_BLOCK + 1) * k];
+            let lane = r % ROW_BLOCK;
+            if r < count {
+                w.decode(p0 + r, &mut decoded[..k]);
+                for (slot, &x) in lanes.iter_mut().zip(&decoded[..k]) {
+                    slot[lane] = x;
+                }
+                scale[r] = w.scale(p0 + r);
+                bias[r] = w.bias(p0 + r);
+            } else {
+                lanes.iter_mut().for_each(|slot| slot[lane] = 0.0);
+            }
         }
         let mut t0 = 0;
         while t0 < n {
@@ -187,21 +198,15 @@ pub fn linear<W: WeightRows>(
             let mut r = 0;
             while r < count {
                 let live = ROW_BLOCK.min(count - r);
-                let weights: [&[f32]; ROW_BLOCK] = core::array::from_fn(|b| {
-                    if b < live {
-                        &panel[(r + b) * k..(r + b + 1) * k]
-                    } else {
-                        &ZERO_ROW[..k]
-                    }
-                });
+                let weights = &panel[r / ROW_BLOCK * k..(r / ROW_BLOCK + 1) * k];
                 let mut i0 = t0;
                 let mut values = [0.0f32; COL_BLOCK];
                 while i0 < t1 {
                     let len = COL_BLOCK.min(t1 - i0);
                     let acc = if len == COL_BLOCK {
-                        block::<true>(&weights, input, i0, len)
+                        block::<true>(weights, input, i0, len)
                     } else {
-                        block::<false>(&weights, input, i0, len)
+                        block::<false>(weights, input, i0, len)
                     };
                     for (b, a) in acc.iter().enumerate().take(live) {
                         for t in 0..len {
@@ -219,32 +224,39 @@ pub fn linear<W: WeightRows>(
     }
 }
 
-/// Accumulates one `ROW_BLOCK x COL_BLOCK` block over all input channels, in order.
+/// Accumulates one `ROW_BLOCK x COL_BLOCK` block over all input channels, in order;
+/// `w[k]` holds the block's weights of input `k`. The accumulators stay in registers.
 #[inline(always)]
 fn block<const FULL: bool>(
-    w: &[&[f32]; ROW_BLOCK],
+    w: &[[f32; ROW_BLOCK]],
     input: &Input<'_>,
     i0: usize,
     len: usize,
 ) -> [[f32; COL_BLOCK]; ROW_BLOCK] {
     let mut acc = [[0.0f32; COL_BLOCK]; ROW_BLOCK];
-    let mut k = 0;
+    let mut weights = w.iter();
+    let first = input.start + i0;
+    let stride = input.stride;
     for (part, &rows) in input.parts.iter().zip(&input.rows) {
-        for r in 0..rows {
-            let at = r * input.stride + input.start + i0;
+        // `rest` starts at the current channel's first point.
+        let mut rest = part.get(first..).unwrap_or(&[]);
+        for wk in weights.by_ref().take(rows) {
             let mut x = [0.0f32; COL_BLOCK];
             if FULL {
-                x.copy_from_slice(&part[at..at + COL_BLOCK]);
+                if let Some(values) = rest.first_chunk::<COL_BLOCK>() {
+                    x = *values;
+                }
             } else {
-                x[..len].copy_from_slice(&part[at..at + len]);
-            }
-            for (a, wr) in acc.iter_mut().zip(w) {
-                let wk = wr[k];
-                for t in 0..COL_BLOCK {
-                    a[t] += wk * x[t];
+                for (xt, &v) in x[..len].iter_mut().zip(rest) {
+                    *xt = v;
                 }
             }
-            k += 1;
+            rest = rest.get(stride..).unwrap_or(&[]);
+            for (a, &wb) in acc.iter_mut().zip(wk) {
+                for t in 0..COL_BLOCK {
+                    a[t] += wb * x[t];
+                }
+            }
         }
     }
     acc
@@ -253,7 +265,14 @@ fn block<const FULL: bool>(
 /// Writes `values` of `row` at points `i0..` of a channel-major matrix of `n` points.
 #[inline(always)]
 pub fn store(out: &mut [f32], n: usize, row: usize, i0: usize, values: &[f32]) {
-    out[row * n + i0..row * n + i0 + values.len()].copy_from_slice(values);
+    let dst = &mut out[row * n + i0..row * n + i0 + values.len()];
+    match (
+        dst.first_chunk_mut::<COL_BLOCK>(),
+        values.first_chunk::<COL_BLOCK>(),
+    ) {
+        (Some(d), Some(v)) if values.len() == COL_BLOCK => *d = *v,
+        _ => dst.copy_from_slice(values),
+    }
 }
 
 /// Adds `values` of `row` at points `i0..` of a channel-major matrix of `n` points.
