@@ -44,6 +44,36 @@ fn camera_strategy() -> impl Strategy<Value = Camera> {
                 Camera::from_colmap(model, width, height, &params).unwrap()
             },
         )
+        .prop_filter(
+            "distortion not invertible over the image (as no calibrated lens is)",
+            |camera| corner_radius(camera) < 0.95 * largest_distorted_radius(camera),
+        )
+}
+
+/// Largest normalised radius of an image corner: the distorted radius to undistort.
+fn corner_radius(camera: &Camera) -> f64 {
+    let f = camera.focal[0].min(camera.focal[1]);
+    let (w, h) = (camera.width as f64, camera.height as f64);
+    [[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]]
+        .iter()
+        .map(|c| (c[0] - camera.principal[0]).hypot(c[1] - camera.principal[1]) / f)
+        .fold(0.0, f64::max)
+}
+
+/// The radial distortion `r (1 + k1 r^2 + k2 r^4)` increases up to a turning point of
+/// barrel lenses; distorted radii beyond its value there have no undistorted preimage.
+fn largest_distorted_radius(camera: &Camera) -> f64 {
+    let [k1, k2, ..] = camera.distortion;
+    let distort = |r: f64| r * (1.0 + k1 * r * r + k2 * r.powi(4));
+    let mut best = 0.0f64;
+    for i in 1..=4000 {
+        let value = distort(i as f64 * 1e-3);
+        if value < best {
+            break;
+        }
+        best = value;
+    }
+    best
 }
 
 proptest! {

@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# Ships a trained checkpoint into models/ and measures it the way the model card reports it.
+#
+#   tools/train/ship_model.sh RUN/last.safetensors [QUERIES]
+#
+# 1. copies the f32 export to models/gomatch.safetensors;
+# 2. converts it with `gomatch-tools convert` to models/gomatch-{f32,f16,int8}.bin;
+# 3. runs `gomatch-sim eval --k 10` (the paper's protocol, Sinkhorn cost in f16 as on the
+#    device) on every validation scene of ../shared/data for each precision, writing
+#    models/eval/<scene>-<precision>.json and .png (QUERIES: queries per scene, default all);
+# 4. writes models/SHA256SUMS and prints the model card's table (tools/train/eval_table.py).
+set -euo pipefail
+checkpoint=$(realpath "$1")
+queries=${2:-500}
+repo=$(cd "$(dirname "$0")/../.." && pwd)
+cd "$repo"
+data="$repo/../shared/data"
+[ -d "$data" ] || { echo "no ../shared/data beside the checkout" >&2; exit 1; }
+
+cargo build --release -q -p gomatch-sim -p gomatch-tools
+bin="$repo/target/release"
+mkdir -p models/eval
+cp "$checkpoint" models/gomatch.safetensors
+for p in f32 f16 int8; do
+  "$bin/gomatch-tools" convert --input models/gomatch.safetensors --precision "$p" \
+    --output "models/gomatch-$p.bin"
+done
+threads=$(nproc)
+for scene in mouse sceaux; do
+  for p in f32 f16 int8; do
+    "$bin/gomatch-sim" eval --colmap "$data/colmap/$scene" --k 10 --queries "$queries" \
+      --model "models/gomatch-$p.bin" --threads "$threads" \
+      --json "models/eval/$scene-$p.json" --plot "models/eval/$scene-$p.png"
+  done
+done
+(cd models && sha256sum gomatch.safetensors gomatch-f32.bin gomatch-f16.bin gomatch-int8.bin > SHA256SUMS)
+python3 tools/train/eval_table.py models/eval
