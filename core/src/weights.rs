@@ -20,7 +20,7 @@
 //! Biases are always f32.
 //!
 //! The converter folds two exact algebraic identities into the stored tensors (both hold
-//! for the reference network as trained, see `notes/README-nn.md`):
+//! for the reference network as trained, see README.md, "The network"):
 //! - residual blocks: `IN(W1 (W0 x + b0) + b1) = IN((W1 W0) x)` because instance norm
 //!   without affine parameters removes any per-channel constant; the block stores `W1 W0`
 //!   and `W2` without biases;

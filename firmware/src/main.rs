@@ -10,7 +10,7 @@
 //! On x86_64 Linux it is linked without the C start files; [`_start`] aligns the stack
 //! and calls [`firmware_main`], which leaves through the `exit` system call. On a
 //! microcontroller, replace `_start` and [`exit`] by the board's entry point (e.g.
-//! `cortex_m_rt::entry`) and its way of reporting a result (see `notes/README-emb.md`).
+//! `cortex_m_rt::entry`) and its way of reporting a result (see README.md, "Building for a Cortex-M or RISC-V target").
 #![no_std]
 #![no_main]
 

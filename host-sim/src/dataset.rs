@@ -1,5 +1,5 @@
 //! `gomatch-sim dataset`: writes training/validation samples (one per query and co-visible
-//! view, see `notes/dataset-format.md`) from real and synthetic scenes through the
+//! view, format in `tools/train/README.md`, "Dataset file format") from real and synthetic scenes through the
 //! localization [`protocol`](crate::protocol), as one safetensors file.
 
 use std::collections::{BTreeMap, HashMap};

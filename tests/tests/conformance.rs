@@ -10,7 +10,7 @@
 //! 300 x 500 fixture has a near-tie, two plan entries 2e-4 apart relatively, that flips
 //! in f32); int8 with the converter's defaults (error-correcting GPTQ calibrated on
 //! synthetic pairs, encoder input layer in f32) >= 0.95 (measured 1.0, 1.0, 1.0, 0.957;
-//! see notes/README-q8.md).
+//! see README.md, "Model blob and `gomatch-tools convert`").
 
 use std::path::{Path, PathBuf};
 

@@ -1,5 +1,5 @@
 //! `gomatch-sim dataset` end to end: write a small dataset, read it back with the
-//! safetensors crate, and check it against `notes/dataset-format.md` and the protocol.
+//! safetensors crate, and check it against the format in `tools/train/README.md` and the protocol.
 
 use std::path::{Path, PathBuf};
 

@@ -1,6 +1,6 @@
 """Training samples: reading the `gomatch-dataset` safetensors format and per-epoch point subsampling.
 
-File format: /work/notes/dataset-format.md (written by `gomatch-sim dataset`). One sample = one query image and
+File format: tools/train/README.md, "Dataset file format" (written by `gomatch-sim dataset`). One sample = one query image and
 one co-visible database view: pts2d (N2, 2) and pts3d (N3, 2) bearing coordinates and match (N2,) = index of the
 GT 3D point of each keypoint or -1.
 
