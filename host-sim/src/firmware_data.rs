@@ -25,6 +25,8 @@ use crate::synthetic::synthetic_scene;
 
 /// Keypoint capacity of the firmware image (`firmware/src/main.rs`).
 pub const FIRMWARE_CAPACITY: usize = 256;
+/// Synthetic scene family of the committed firmware data: one the shipped model never saw.
+pub const FIRMWARE_SEED: u64 = 1;
 /// Largest map blob written, to keep the image small.
 const MAX_MAP_BYTES: usize = 100 * 1024;
 
@@ -34,8 +36,9 @@ pub struct Args {
     /// Output directory.
     #[arg(long, default_value = "firmware/data")]
     pub out: PathBuf,
-    /// Seed of the synthetic scene family.
-    #[arg(long, default_value_t = 0)]
+    /// Seed of the synthetic scene family (default 1: the shipped model trained on seed 0's
+    /// scenes, see models/README.md).
+    #[arg(long, default_value_t = FIRMWARE_SEED)]
     pub seed: u64,
     /// Index of the synthetic scene.
     #[arg(long, default_value_t = 0)]

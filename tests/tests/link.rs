@@ -11,7 +11,7 @@ use gomatch::weights::Precision;
 use gomatch::{Localizer, Map, Model};
 use gomatch_sim::device::{run_session, LinkQuery};
 use gomatch_sim::eval::{protocol_samples, query_pixels, CAPACITY};
-use gomatch_sim::firmware_data::{firmware_data, FIRMWARE_CAPACITY};
+use gomatch_sim::firmware_data::{firmware_data, FIRMWARE_CAPACITY, FIRMWARE_SEED};
 use gomatch_sim::map::build_map;
 use gomatch_sim::protocol::ProtocolParams;
 use gomatch_sim::synthetic::synthetic_scene;
@@ -116,7 +116,7 @@ fn device_replies_equal_direct_calls_after_noise() {
 /// the firmware's capacity accepts, and the map is small.
 #[test]
 fn firmware_data_regenerates_the_committed_files() {
-    let data = firmware_data(0, 0, 10).expect("firmware data");
+    let data = firmware_data(FIRMWARE_SEED, 0, 10).expect("firmware data");
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../firmware/data");
     let read = |name: &str| std::fs::read(dir.join(name)).expect("committed file");
     assert_eq!(data.map, read("map.bin"));
