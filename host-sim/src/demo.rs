@@ -15,8 +15,8 @@ use crate::eval::{
     default_model_path, evaluate, EvalOptions, Matching, QueryResult, Report, SinkhornPrecision,
     CAPACITY,
 };
-use crate::protocol::ProtocolParams;
-use crate::synthetic::synthetic_scene;
+
+use crate::synthetic::SyntheticQueries;
 
 /// Localize a few queries of a built-in synthetic scene and print what happened.
 #[derive(Debug, Clone, Parser)]
@@ -27,18 +27,9 @@ pub struct Args {
     /// Use ground-truth matches even when a model is available.
     #[arg(long)]
     pub oracle: bool,
-    /// Seed of the synthetic scene family.
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    /// Index of the synthetic scene.
-    #[arg(long, default_value_t = 0)]
-    pub scene: u64,
-    /// Queries to localize.
-    #[arg(long, default_value_t = 3)]
-    pub queries: usize,
-    /// Co-visible views per query (image-retrieval stand-in: the protocol's views).
-    #[arg(long, default_value_t = 5)]
-    pub k: usize,
+    /// The scene and its queries.
+    #[command(flatten)]
+    pub synthetic: SyntheticQueries,
     /// Storage of the Sinkhorn cost matrix.
     #[arg(long, value_enum, default_value_t = SinkhornPrecision::F16)]
     pub precision_sinkhorn: SinkhornPrecision,
@@ -134,7 +125,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             .map(|()| log::set_max_level(log::LevelFilter::Debug))
             .map_err(|e| anyhow::anyhow!("installing the logger: {e}"))?;
     }
-    let scene = synthetic_scene(args.seed, args.scene);
+    let scene = args.synthetic.scene();
     println!(
         "synthetic scene {}: {} images, {} cameras, {} 3D points",
         scene.name,
@@ -183,14 +174,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         }
     };
     let options = EvalOptions {
-        protocol: ProtocolParams {
-            k: args.k,
-            queries_per_scene: args.queries,
-            seed: args.seed,
-            max_keypoints: CAPACITY,
-            max_points: CAPACITY,
-            ..ProtocolParams::default()
-        },
+        protocol: args.synthetic.protocol(CAPACITY),
         localizer: LocalizerConfig::new(),
         threads: 1,
     };

@@ -28,8 +28,8 @@ use rand_pcg::Pcg64Mcg;
 
 use crate::eval::{default_model_path, protocol_samples, query_pixels, HostClock, CAPACITY};
 use crate::map::build_map;
-use crate::protocol::ProtocolParams;
-use crate::synthetic::synthetic_scene;
+use crate::protocol::QuerySample;
+use crate::synthetic::SyntheticQueries;
 
 /// Receive buffer of the simulated device.
 const RX: usize = link::rx_frame_len(CAPACITY);
@@ -45,18 +45,9 @@ pub struct Args {
     /// weights converted to int8).
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// Seed of the synthetic scene family.
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    /// Index of the synthetic scene.
-    #[arg(long, default_value_t = 0)]
-    pub scene: u64,
-    /// Queries to send.
-    #[arg(long, default_value_t = 3)]
-    pub queries: usize,
-    /// Co-visible views per query.
-    #[arg(long, default_value_t = 5)]
-    pub k: usize,
+    /// The scene and the queries to send.
+    #[command(flatten)]
+    pub synthetic: SyntheticQueries,
     /// Random bytes sent before the first request (the device must resynchronise).
     #[arg(long, default_value_t = 1000)]
     pub noise: usize,
@@ -277,6 +268,16 @@ pub struct LinkQuery {
 }
 
 impl LinkQuery {
+    /// The query of a protocol sample: its keypoint pixels, camera, views and true pose.
+    pub fn from_sample(sample: &QuerySample) -> Self {
+        LinkQuery {
+            pixels: query_pixels(sample),
+            camera: sample.camera,
+            view_ids: sample.views.iter().map(|v| v.image_id).collect(),
+            truth: sample.pose,
+        }
+    }
+
     /// The request body (`keypoint_bytes` holds the wire keypoints).
     pub fn request<'a>(&self, keypoint_bytes: &'a mut Vec<u8>) -> anyhow::Result<RequestBody<'a>> {
         keypoint_bytes.resize(link::KEYPOINT_BYTES * self.pixels.len(), 0);
@@ -410,27 +411,15 @@ pub fn fixture_weights_path() -> PathBuf {
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let (model_blob, model_name) = load_model(args.model.as_deref())?;
     let model = Model::from_bytes(&model_blob).map_err(|e| anyhow::anyhow!("model: {e}"))?;
-    let scene = synthetic_scene(args.seed, args.scene);
+    let scene = args.synthetic.scene();
     let map_blob = build_map(&scene)?;
     let map = Map::from_bytes(&map_blob).map_err(|e| anyhow::anyhow!("map: {e}"))?;
-    let params = ProtocolParams {
-        k: args.k,
-        queries_per_scene: args.queries,
-        seed: args.seed,
-        max_keypoints: CAPACITY,
-        max_points: CAPACITY,
-        ..ProtocolParams::default()
-    };
+    let params = args.synthetic.protocol(CAPACITY);
     let queries: Vec<LinkQuery> = protocol_samples(&scene, &params)
         .iter()
-        .map(|s| LinkQuery {
-            pixels: query_pixels(s),
-            camera: s.camera,
-            view_ids: s.views.iter().map(|v| v.image_id).collect(),
-            truth: s.pose,
-        })
+        .map(LinkQuery::from_sample)
         .collect();
-    let mut rng = Pcg64Mcg::seed_from_u64(args.seed);
+    let mut rng = Pcg64Mcg::seed_from_u64(args.synthetic.seed);
     let noise: Vec<u8> = (0..args.noise).map(|_| rng.random()).collect();
     println!("model: {model_name}");
     println!(

@@ -793,14 +793,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let mut scene = source.load()?;
     scene.name = source.name();
     let options = EvalOptions {
-        protocol: ProtocolParams {
-            k: args.k,
-            queries_per_scene: args.queries,
-            seed: args.seed,
-            max_keypoints: CAPACITY,
-            max_points: CAPACITY,
-            ..ProtocolParams::default()
-        },
+        protocol: ProtocolParams::for_localizer(args.k, args.queries, args.seed, CAPACITY),
         localizer: LocalizerConfig::new(),
         threads: args.threads,
     };

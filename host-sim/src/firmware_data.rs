@@ -89,14 +89,7 @@ fn scene_scale(sample: &QuerySample) -> f64 {
 /// Builds the firmware data from the first protocol query of the scene with `k` views.
 pub fn firmware_data(seed: u64, scene_index: u64, k: usize) -> anyhow::Result<FirmwareData> {
     let scene = synthetic_scene(seed, scene_index);
-    let params = ProtocolParams {
-        k,
-        queries_per_scene: 20,
-        seed,
-        max_keypoints: FIRMWARE_CAPACITY,
-        max_points: FIRMWARE_CAPACITY,
-        ..ProtocolParams::default()
-    };
+    let params = ProtocolParams::for_localizer(k, 20, seed, FIRMWARE_CAPACITY);
     let sample = protocol_samples(&scene, &params)
         .into_iter()
         .find(|s| s.views.len() == k)

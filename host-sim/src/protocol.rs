@@ -71,6 +71,21 @@ impl Default for ProtocolParams {
     }
 }
 
+impl ProtocolParams {
+    /// The defaults with `k` views and `queries` queries drawn with `seed`, keypoints and
+    /// view points capped at a localizer's `capacity`.
+    pub fn for_localizer(k: usize, queries: usize, seed: u64, capacity: usize) -> Self {
+        Self {
+            k,
+            queries_per_scene: queries,
+            seed,
+            max_keypoints: capacity,
+            max_points: capacity,
+            ..Self::default()
+        }
+    }
+}
+
 /// The keypoints of a query as the matcher sees them.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct QueryKeypoints {

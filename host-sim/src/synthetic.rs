@@ -27,7 +27,7 @@ use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
 use rand_pcg::Pcg64Mcg;
 
-use crate::protocol::derive_seed;
+use crate::protocol::{derive_seed, ProtocolParams};
 use crate::scene::{CameraId, Image, ImageId, Keypoint, Point3d, Scene, TrackElement};
 
 /// Candidate structure points per scene before detection dropout.
@@ -247,6 +247,36 @@ struct StructurePoint {
 struct Shot {
     camera_id: CameraId,
     pose: Pose,
+}
+
+/// A synthetic scene and the protocol queries drawn from it, as `demo` and `device` take
+/// them on the command line.
+#[derive(Debug, Clone, clap::Args)]
+pub struct SyntheticQueries {
+    /// Seed of the synthetic scene family.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Index of the synthetic scene.
+    #[arg(long, default_value_t = 0)]
+    pub scene: u64,
+    /// Queries to localize.
+    #[arg(long, default_value_t = 3)]
+    pub queries: usize,
+    /// Co-visible views per query (image-retrieval stand-in: the protocol's views).
+    #[arg(long, default_value_t = 5)]
+    pub k: usize,
+}
+
+impl SyntheticQueries {
+    /// The chosen scene.
+    pub fn scene(&self) -> Scene {
+        synthetic_scene(self.seed, self.scene)
+    }
+
+    /// The protocol drawing the queries, capped at a localizer's `capacity`.
+    pub fn protocol(&self, capacity: usize) -> ProtocolParams {
+        ProtocolParams::for_localizer(self.k, self.queries, self.seed, capacity)
+    }
 }
 
 /// Generates synthetic scene number `index` of the family seeded by `seed`, named

@@ -21,13 +21,7 @@ use gomatch_sim::synthetic::synthetic_scene;
 
 fn options(k: usize, queries: usize, threads: usize) -> EvalOptions {
     EvalOptions {
-        protocol: ProtocolParams {
-            k,
-            queries_per_scene: queries,
-            max_keypoints: CAPACITY,
-            max_points: CAPACITY,
-            ..ProtocolParams::default()
-        },
+        protocol: ProtocolParams::for_localizer(k, queries, 0, CAPACITY),
         localizer: LocalizerConfig::new(),
         threads,
     }

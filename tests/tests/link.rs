@@ -10,7 +10,7 @@ use gomatch::link::{self, LinkError, LocalizeReply, Request, RequestBody, Respon
 use gomatch::weights::Precision;
 use gomatch::{Localizer, Map, Model};
 use gomatch_sim::device::{run_session, LinkQuery};
-use gomatch_sim::eval::{protocol_samples, query_pixels, CAPACITY};
+use gomatch_sim::eval::{protocol_samples, CAPACITY};
 use gomatch_sim::firmware_data::{firmware_data, FIRMWARE_CAPACITY, FIRMWARE_SEED};
 use gomatch_sim::map::build_map;
 use gomatch_sim::protocol::ProtocolParams;
@@ -50,12 +50,7 @@ fn device_replies_equal_direct_calls_after_noise() {
     };
     let queries: Vec<LinkQuery> = protocol_samples(&scene, &params)
         .iter()
-        .map(|s| LinkQuery {
-            pixels: query_pixels(s),
-            camera: s.camera,
-            view_ids: s.views.iter().map(|v| v.image_id).collect(),
-            truth: s.pose,
-        })
+        .map(LinkQuery::from_sample)
         .collect();
     assert_eq!(queries.len(), 2);
     let mut noise: Vec<u8> = (0..=255u8).collect();

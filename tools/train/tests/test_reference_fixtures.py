@@ -15,6 +15,7 @@ from conftest import FIXTURES, require
 
 from gomatch_train.attention import coordinate_neighbours
 from gomatch_train.export import load_export
+from gomatch_train.fixture import ATTENTION_STAGES, forward_stages
 from gomatch_train.sinkhorn import cost_with_dustbins, descriptor_distances, log_sinkhorn, marginals, mutual_assignment
 
 STAGE_TOLERANCE = 2e-5  # isolated stage: max |ours - ref| <= tol * max(1, max |ref|)
@@ -135,33 +136,20 @@ def test_end_to_end(case, model):
     if case is None:
         require(FIXTURES)
     fx = Fixture(case)
-    raw = model.matcher.raw_matcher
-    encoded, attended = [], []
-    hooks = [raw.kp2d_enc.register_forward_hook(lambda m, i, o: encoded.append(o))]
-    hooks += [layer.register_forward_hook(lambda m, i, o: attended.append(o)) for layer in raw.attention.att.layers]
-    try:
-        with torch.no_grad():
-            result = model(fx.tensor("pts2d"), fx.tensor("pts3d_bvs"))
-    finally:
-        for h in hooks:
-            h.remove()
+    stages, iterations = forward_stages(model, fx.tensor("pts2d"), fx.tensor("pts3d_bvs"))
 
     # The shared encoder runs twice: 2D first, then 3D.
-    assert_close("enc2d", encoded[0], fx.array("enc2d"), END_TO_END_TOLERANCE)
-    assert_close("enc3d", encoded[1], fx.array("enc3d"), END_TO_END_TOLERANCE)
-    for (out2d, out3d), stage in zip(attended, ("att0_self", "att1_cross", "att2_self")):
-        assert_close(f"{stage}_2d", out2d, fx.array(f"{stage}_2d"), END_TO_END_TOLERANCE)
-        assert_close(f"{stage}_3d", out3d, fx.array(f"{stage}_3d"), END_TO_END_TOLERANCE)
-    assert_close("desc2d_l2", result.desc2d, fx.array("desc2d_l2"), END_TO_END_TOLERANCE)
-    assert_close("desc3d_l2", result.desc3d, fx.array("desc3d_l2"), END_TO_END_TOLERANCE)
-    assert_close("ot_cost", result.cost, fx.array("ot_cost"), END_TO_END_TOLERANCE)
-    assert result.sinkhorn_iterations == fx.index["sinkhorn"]["iterations_run"]
-    assert_close("scores", result.plan, fx.array("scores"), PLAN_TOLERANCE * 10)
+    features = ["enc2d", "enc3d"] + [f"{stage}_{side}" for stage in ATTENTION_STAGES for side in ("2d", "3d")]
+    for name in features + ["desc2d_l2", "desc3d_l2", "ot_cost"]:
+        assert_close(name, stages[name], fx.array(name), END_TO_END_TOLERANCE)
+    assert iterations == fx.index["sinkhorn"]["iterations_run"]
+    assert_close("scores", stages["scores"], fx.array("scores"), PLAN_TOLERANCE * 10)
 
-    n3d, n2d = result.log_plan.shape[0] - 1, result.log_plan.shape[1] - 1
-    np.testing.assert_array_equal(result.i3d.numpy(), fx.array("match_i3d"))
-    np.testing.assert_array_equal(result.i2d.numpy(), fx.array("match_i2d"))
-    np.testing.assert_array_equal(assignment_mask(result.i3d, result.i2d, n3d, n2d), fx.array("mutual_mask"))
-    assert_close("match_probs", result.match_probs, fx.array("match_probs"), PROB_TOLERANCE)
-    probs = probs_matrix(result.i3d, result.i2d, result.match_probs.numpy(), n3d, n2d)
+    n3d, n2d = stages["scores"].shape[0] - 1, stages["scores"].shape[1] - 1
+    np.testing.assert_array_equal(stages["match_i3d"], fx.array("match_i3d"))
+    np.testing.assert_array_equal(stages["match_i2d"], fx.array("match_i2d"))
+    i3d, i2d = stages["match_i3d"], stages["match_i2d"]
+    np.testing.assert_array_equal(assignment_mask(i3d, i2d, n3d, n2d), fx.array("mutual_mask"))
+    assert_close("match_probs", stages["match_probs"], fx.array("match_probs"), PROB_TOLERANCE)
+    probs = probs_matrix(i3d, i2d, stages["match_probs"], n3d, n2d)
     assert_close("match_probs_matrix", probs, fx.array("match_probs_matrix"), PROB_TOLERANCE)
