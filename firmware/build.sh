@@ -33,8 +33,10 @@ else
   exit 0
 fi
 
+# RUSTFLAGS replaces .cargo/config.toml's flags, so the FMA feature is repeated here
+# (without it the matcher uses libm's software fmaf: same bits, slower).
 GOMATCH_FIRMWARE_MODEL="$model" \
-  RUSTFLAGS="-C link-arg=-nostartfiles -C link-arg=-static -C relocation-model=static" \
+  RUSTFLAGS="-C link-arg=-nostartfiles -C link-arg=-static -C relocation-model=static -C target-feature=+fma,+avx2" \
   cargo build --release --target x86_64-unknown-linux-gnu
 image=target/x86_64-unknown-linux-gnu/release/gomatch-firmware
 ls -l "$image"

@@ -179,13 +179,12 @@ fn finish_edge_channel(
     let mut deviations = 0.0f64;
     for (&ai, neighbours) in a.iter().zip(graph) {
         for &j in &neighbours[..k] {
-            let e = f64::from(ai + b[usize::from(j)]) - mean;
-            deviations += e * e;
+            deviations += Moments::squared_deviation(ai + b[usize::from(j)], mean);
         }
     }
-    let (mean, inv_std) = moments.normalizer(deviations);
+    let normalizer = moments.normalizer(deviations);
     for (ai, &m) in a.iter_mut().zip(maxima.iter()) {
-        *ai = leaky_relu((*ai + m - mean) * inv_std);
+        *ai = leaky_relu(normalizer.apply(*ai + m));
     }
 }
 

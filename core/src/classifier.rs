@@ -26,7 +26,7 @@ pub struct Descriptors<'s> {
     pub n3: usize,
 }
 
-/// Sets `probability` of every match. `pool` holds at least `c x max(n2 + n3, 2, matches)`
+/// Sets `probability` of every match. `pool` holds at least `c x max(n2 + n3, 3, matches + 1)`
 /// values and `rows` at least `ROW_BLOCK x max(2, matches)`, both scratch. A single match is
 /// classified as two copies of itself, as the reference does.
 pub fn classify(

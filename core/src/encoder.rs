@@ -6,7 +6,7 @@ use crate::nn::linear::store;
 use crate::nn::{linear, residual_block, Input};
 use crate::weights::EncoderWeights;
 
-/// Encodes `points` into `x` (`d x n`, channel-major). `hidden` (`d x n`) and `rows`
+/// Encodes `points` into `x` (`d x n`, channel-major). `hidden` (`d x (n + 1)`) and `rows`
 /// (at least `ROW_BLOCK x n`) are scratch.
 pub fn encode(
     w: &EncoderWeights<'_>,

@@ -14,7 +14,7 @@
 //! pipeline for one query against several views of a map. [`link`] serves it to a host
 //! over a byte stream (COBS-framed postcard messages).
 #![no_std]
-#![forbid(unsafe_code)]
+#![deny(unsafe_code)]
 #![warn(missing_docs)]
 
 #[cfg(test)]

@@ -5,9 +5,9 @@
 //!
 //! The forward pass follows the network of `gomatch::Matcher` (encoder, EdgeConv self
 //! attention, cross attention, classifier; supp. "Architecture Details") on the converted
-//! tensors (fused residual blocks, split EdgeConv weights). Layers followed by an instance
-//! norm see their inputs centred per set, because the norm removes any error that is
-//! constant over the set. The two halves of an EdgeConv layer act together on the edge
+//! tensors (split EdgeConv weights). Layers followed by an instance norm, directly or
+//! through another linear layer, see their inputs centred per set, because the norm
+//! removes any error that is constant over the set. The two halves of an EdgeConv layer act together on the edge
 //! `[x_i; x_j]`, so they share one joint moment matrix.
 
 use gomatch::weights::ModelConfig;
@@ -618,7 +618,7 @@ impl Engine<'_> {
         usize::from(self.config.encoder_blocks)
     }
     fn self_base(&self, layer: usize) -> usize {
-        1 + 2 * self.encoder_blocks() + 5 * layer
+        1 + 3 * self.encoder_blocks() + 5 * layer
     }
     fn cross_base(&self) -> usize {
         self.self_base(2)
@@ -774,7 +774,8 @@ impl Engine<'_> {
         self.residual_blocks(x, 1, self.encoder_blocks())
     }
 
-    /// `x += ReLU(IN(W2 IN(W1 W0 x)))` per block; tensors `first`, `first + 1`, ...
+    /// `x += ReLU(IN(W2 IN(W1 W0 x)))` per block (biases included); tensors `first`,
+    /// `first + 1`, ...
     fn residual_blocks(
         &mut self,
         mut x: Vec<Both>,
@@ -782,11 +783,13 @@ impl Engine<'_> {
         blocks: usize,
     ) -> anyhow::Result<Vec<Both>> {
         for b in 0..blocks {
-            let (fused, conv2) = (first + 2 * b, first + 2 * b + 1);
-            self.fit(fused, &x.iter().collect::<Vec<_>>(), true)?;
-            let h: Vec<Both> = x
+            let (preconv, conv1, conv2) = (first + 3 * b, first + 3 * b + 1, first + 3 * b + 2);
+            self.fit(preconv, &x.iter().collect::<Vec<_>>(), true)?;
+            let h0: Vec<Both> = x.iter().map(|x| self.apply(preconv, x)).collect();
+            self.fit(conv1, &h0.iter().collect::<Vec<_>>(), true)?;
+            let h: Vec<Both> = h0
                 .iter()
-                .map(|x| self.apply(fused, x).map(Features::instance_norm))
+                .map(|h0| self.apply(conv1, h0).map(Features::instance_norm))
                 .collect();
             self.fit(conv2, &h.iter().collect::<Vec<_>>(), true)?;
             for (x, h) in x.iter_mut().zip(&h) {
@@ -936,7 +939,7 @@ impl Engine<'_> {
         let x = inputs.iter().map(|x| self.apply(first, x)).collect();
         let blocks = usize::from(self.config.classifier_blocks);
         let x = self.residual_blocks(x, first + 1, blocks)?;
-        self.fit(first + 1 + 2 * blocks, &x.iter().collect::<Vec<_>>(), false)
+        self.fit(first + 1 + 3 * blocks, &x.iter().collect::<Vec<_>>(), false)
     }
 }
 

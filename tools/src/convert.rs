@@ -33,7 +33,7 @@ pub struct Args {
     #[arg(long)]
     pub output: PathBuf,
     /// Tensors stored in f32 whatever the precision, comma-separated blob names
-    /// (`encoder.block.fused[0]`, ...); empty for none. Default: the encoder input and
+    /// (`encoder.block.conv1[0]`, ...); empty for none. Default: the encoder input and
     /// first block for f16, the encoder input for int8.
     #[arg(long, value_delimiter = ',')]
     pub keep_f32: Option<Vec<String>>,
@@ -201,7 +201,8 @@ pub struct FloatLinear {
 /// match agreement 0.932 -> 1.0 on the 300 x 500 fixture for +66 KiB).
 pub const DEFAULT_KEEP_F32_F16: &[&str] = &[
     "encoder.input[0]",
-    "encoder.block.fused[0]",
+    "encoder.block.preconv[0]",
+    "encoder.block.conv1[0]",
     "encoder.block.conv2[0]",
 ];
 
@@ -223,7 +224,7 @@ pub fn convert_with(safetensors: &[u8], options: &Options) -> Result<(Vec<u8>, M
     Ok((write_blob(&config, options, &tensors)?, config))
 }
 
-/// The checkpoint's tensors in blob order (residual blocks fused, EdgeConv weights
+/// The checkpoint's tensors in blob order (EdgeConv weights
 /// split), in f32, with the configuration.
 pub fn float_tensors(safetensors: &[u8]) -> Result<(ModelConfig, Vec<FloatLinear>)> {
     let checkpoint = Checkpoint::parse(safetensors)?;
@@ -460,7 +461,7 @@ fn linear(weights: &[f32], rows: usize, cols: usize, bias: &[f32]) -> FloatLinea
     }
 }
 
-/// `conv1 * preconv` (in f64) and `conv2` of each residual block, biases dropped.
+/// `preconv`, `conv1` and `conv2` of each residual block, with their biases, as stored.
 fn residual_blocks<'a>(
     out: &mut Vec<FloatLinear>,
     w: &impl Fn(&str) -> &'a [f32],
@@ -469,29 +470,14 @@ fn residual_blocks<'a>(
     blocks: usize,
 ) {
     for b in 0..blocks {
-        let pre = w(&format!("{p}conv_{b}.preconv.0.weight"));
-        let conv1 = w(&format!("{p}conv_{b}.conv1.0.weight"));
-        let mut fused = vec![0.0f32; width * width];
-        for o in 0..width {
-            for i in 0..width {
-                let s: f64 = (0..width)
-                    .map(|k| f64::from(conv1[o * width + k]) * f64::from(pre[k * width + i]))
-                    .sum();
-                fused[o * width + i] = s as f32;
-            }
+        for conv in ["preconv", "conv1", "conv2"] {
+            out.push(linear(
+                w(&format!("{p}conv_{b}.{conv}.0.weight")),
+                width,
+                width,
+                w(&format!("{p}conv_{b}.{conv}.0.bias")),
+            ));
         }
-        out.push(FloatLinear {
-            rows: width,
-            cols: width,
-            weights: fused,
-            bias: vec![],
-        });
-        out.push(linear(
-            w(&format!("{p}conv_{b}.conv2.0.weight")),
-            width,
-            width,
-            &[],
-        ));
     }
 }
 
@@ -803,21 +789,28 @@ mod tests {
     }
 
     #[test]
-    fn residual_blocks_store_the_fused_product_and_edge_convs_their_parts() {
+    fn residual_blocks_store_their_convolutions_and_edge_convs_their_parts() {
         let ts = tensors(&SMALL);
         let (blob, _) =
             convert(&serialize(&ts, Dtype::F32, None), Precision::F32).expect("converts");
         let model = Model::from_bytes(&blob).expect("loads");
         let get = |suffix: &str| &ts.iter().find(|t| t.0.ends_with(suffix)).expect(suffix).2;
-        let pre = get("kp2d_enc.conv_1.preconv.0.weight");
-        let conv1 = get("kp2d_enc.conv_1.conv1.0.weight");
         let mut row = [0.0f32; 8];
-        model.encoder.blocks[1].fused.decode_row(3, 0, &mut row);
-        for (i, &v) in row.iter().enumerate() {
-            let exact: f64 = (0..8)
-                .map(|k| f64::from(conv1[3 * 8 + k]) * f64::from(pre[k * 8 + i]))
-                .sum();
-            assert_eq!(v, exact as f32);
+        let block = &model.encoder.blocks[1];
+        for (conv, stored) in [
+            ("preconv", &block.preconv),
+            ("conv1", &block.conv1),
+            ("conv2", &block.conv2),
+        ] {
+            stored.decode_row(3, 0, &mut row);
+            assert_eq!(
+                row[..],
+                get(&format!("kp2d_enc.conv_1.{conv}.0.weight"))[24..32]
+            );
+            assert_eq!(
+                stored.bias(3),
+                get(&format!("kp2d_enc.conv_1.{conv}.0.bias"))[3]
+            );
         }
         let w = get("layers.2.conv2.weight"); // 16 x 16 on [x_i, x_j - x_i]
         model.self_layers[1].edge2_centre.decode_row(5, 0, &mut row);

@@ -4,8 +4,11 @@
 //! Weights are decoded [`ROW_BLOCK`] rows at a time into f32 and reused over all points,
 //! so each stored weight is read once per call (cheap zero-copy reading of f16/int8 from
 //! flash). The inner block keeps `ROW_BLOCK x COL_BLOCK` accumulators in registers; the
-//! sum over `k` runs in order for every output, so results do not depend on SIMD width.
+//! sum over `k` runs in order for every output with fused multiply-adds, as the
+//! reference's BLAS does, so results neither depend on SIMD width nor differ from the
+//! reference's f32 products.
 
+use super::fma::mul_add;
 use crate::weights::{Linear, MAX_FEATURE_DIM};
 
 /// Output rows computed together.
@@ -254,7 +257,7 @@ fn block<const FULL: bool>(
             rest = rest.get(stride..).unwrap_or(&[]);
             for (a, &wb) in acc.iter_mut().zip(wk) {
                 for t in 0..COL_BLOCK {
-                    a[t] += wb * x[t];
+                    a[t] = mul_add(wb, x[t], a[t]);
                 }
             }
         }

@@ -1,5 +1,5 @@
 //! Reusable kernels of the network: per-point linear layers, instance norm, activations, the
-//! residual block of a point ResNet and a deterministic exponential.
+//! residual block of a point ResNet, a deterministic exponential and fused multiply-add.
 //!
 //! Every feature matrix is channel-major: channel `c` of point `i` of a set of `n` points is
 //! `x[c * n + i]`. A per-point linear layer is then a small matrix product whose inner
@@ -7,11 +7,13 @@
 //! layer call (see [`mod@linear`]).
 
 pub mod exp;
+pub mod fma;
 pub mod linear;
 pub mod norm;
 pub mod residual;
 
 pub use exp::exp;
+pub use fma::mul_add;
 pub use linear::{linear, Input, WeightRows, COL_BLOCK, MAX_INPUT, ROW_BLOCK};
-pub use norm::{instance_norm, l2_normalize_points, leaky_relu, relu, Moments};
+pub use norm::{instance_norm, l2_normalize_points, leaky_relu, relu, Moments, Normalizer};
 pub use residual::residual_block;

@@ -1,13 +1,14 @@
-//! Residual block of a point ResNet (supp. "Feature Encoder", Fig. "Residual Block"):
-//! `out = ReLU(IN(W2 IN(W1 W0 x))) + x`, no activation between the convolutions.
+//! Residual block of a point ResNet (supp. Fig. "Residual Block"):
+//! `out = ReLU(IN(W2 IN(W1 (W0 x + b0) + b1) + b2)) + x`, no activation between the
+//! convolutions, each computed as the reference does (no folding, see [`crate::weights`]).
 
 use super::linear::{chunk_rows, linear, store, Input};
 use super::norm::{instance_norm, relu};
 use crate::weights::ResidualBlockWeights;
 
-/// Applies one block in place to `x` (`d x n`, channel-major). `hidden` holds `d x n`
-/// values and `rows` at least `ROW_BLOCK x n`; both are scratch (more rows, fewer passes
-/// over `hidden`).
+/// Applies one block in place to `x` (`d x n`, channel-major). `hidden` holds at least
+/// `d x (n + 1)` values and `rows` at least `ROW_BLOCK x n`; both are scratch (more of
+/// either, fewer passes).
 pub fn residual_block(
     w: &ResidualBlockWeights<'_>,
     x: &mut [f32],
@@ -15,14 +16,13 @@ pub fn residual_block(
     hidden: &mut [f32],
     rows: &mut [f32],
 ) {
-    let d = w.fused.rows();
-    linear(&w.fused, &Input::one(x, d, n), 0..d, |r, i0, v| {
-        store(hidden, n, r, i0, v)
-    });
-    for row in hidden[..d * n].chunks_exact_mut(n) {
+    let d = w.conv1.rows();
+    let (inner, tile) = hidden.split_at_mut(d * n);
+    conv1_of_preconv(w, x, n, inner, tile);
+    for row in inner.chunks_exact_mut(n) {
         instance_norm(row);
     }
-    let input = Input::one(hidden, d, n);
+    let input = Input::one(inner, d, n);
     let chunk = chunk_rows(d, rows.len(), n);
     let mut r0 = 0;
     while r0 < d {
@@ -38,6 +38,31 @@ pub fn residual_block(
             }
         }
         r0 = r1;
+    }
+}
+
+/// `out = W1 (W0 x + b0) + b1` (`d x n`), through `tile` (at least `d` values): the
+/// preconv output of as many points at once as `tile` holds.
+fn conv1_of_preconv(
+    w: &ResidualBlockWeights<'_>,
+    x: &[f32],
+    n: usize,
+    out: &mut [f32],
+    tile: &mut [f32],
+) {
+    let d = w.preconv.rows();
+    let points = (tile.len() / d.max(1)).clamp(1, n.max(1));
+    let mut t0 = 0;
+    while t0 < n {
+        let len = points.min(n - t0);
+        let input = Input::one(x, d, n).columns(t0, len);
+        linear(&w.preconv, &input, 0..d, |r, i0, v| {
+            store(tile, len, r, i0, v)
+        });
+        linear(&w.conv1, &Input::one(tile, d, len), 0..d, |r, i0, v| {
+            store(out, n, r, t0 + i0, v)
+        });
+        t0 += len;
     }
 }
 
@@ -57,11 +82,12 @@ mod tests {
             b
         };
         let w = ResidualBlockWeights {
-            fused: layer(2, 2, Precision::F32, &eye, &[], &[]),
+            preconv: layer(2, 2, Precision::F32, &eye, &[], &[]),
+            conv1: layer(2, 2, Precision::F32, &eye, &[], &[]),
             conv2: layer(2, 2, Precision::F32, &eye, &[], &[]),
         };
         let mut x = [1.0f32, 2.0, 3.0, 5.0, 5.0, 5.0];
-        let mut hidden = [0.0; 6];
+        let mut hidden = [0.0; 8];
         let mut rows = [0.0; crate::nn::ROW_BLOCK * 3];
         residual_block(&w, &mut x, 3, &mut hidden, &mut rows);
         let mut z = [1.0f32, 2.0, 3.0];

@@ -52,7 +52,7 @@ def write_fixture(model: GoMatch, pts2d: np.ndarray, pts3d: np.ndarray, out: Pat
     out.mkdir(parents=True, exist_ok=True)
     arrays, iterations = forward_stages(model.eval(), torch.from_numpy(pts2d), torch.from_numpy(pts3d))
     for name, array in arrays.items():
-        np.save(out / f"{name}.npy", array)
+        np.save(out / f"{name}.npy", np.ascontiguousarray(array))
     index = {
         "model": "gomatch_train",
         "config": json.loads(model.config.to_json()),

@@ -46,10 +46,11 @@ class PointLinear(nn.Module):
 def instance_norm(x: torch.Tensor) -> torch.Tensor:
     """InstanceNorm without affine parameters over the rows of a point-major (N, C) tensor.
 
-    Per channel: (x - mean) / sqrt(biased_var + 1e-5), statistics over the N rows (one set of points).
-    Implemented with the batch-norm kernel in training mode, which computes exactly these per-column statistics.
+    Per channel: (x - mean) / sqrt(biased_var + 1e-5), statistics over the N rows (one set of points). Computed
+    on the channel-major view, as the reference's InstanceNorm1d does, so that the rounding is the reference's
+    too (the batch-norm kernel on the point-major layout takes another path, a few ulps away).
     """
-    return F.batch_norm(x, None, None, training=True, momentum=0.0, eps=INSTANCE_NORM_EPS)
+    return F.instance_norm(x.t().unsqueeze(0), eps=INSTANCE_NORM_EPS).squeeze(0).t()
 
 
 class InstanceNorm(nn.Module):

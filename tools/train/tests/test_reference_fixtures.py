@@ -153,3 +153,55 @@ def test_end_to_end(case, model):
     assert_close("match_probs", stages["match_probs"], fx.array("match_probs"), PROB_TOLERANCE)
     probs = probs_matrix(i3d, i2d, stages["match_probs"], n3d, n2d)
     assert_close("match_probs_matrix", probs, fx.array("match_probs_matrix"), PROB_TOLERANCE)
+
+
+SMALL_SET = 12  # below this many points the reference's BLAS switches summation path (see README, Conformance)
+
+
+def ordered_linear(x: torch.Tensor, layer, fused: bool) -> torch.Tensor:
+    """A per-point linear layer summed over the inputs in order, in f32: with fused multiply-add and the bias
+    added last (`fused`), or with separate multiply and add starting from the bias. The f32 FMA is emulated in
+    f64, where the product of two f32 is exact."""
+    w, b = layer.matrix(), layer.bias
+    if fused:
+        acc = torch.zeros(x.shape[0], w.shape[0])
+        for k in range(w.shape[1]):
+            acc = (acc.double() + x[:, k : k + 1].double() * w[:, k].double()).float()
+        return acc + b
+    acc = torch.zeros(x.shape[0], w.shape[0]) + b
+    for k in range(w.shape[1]):
+        acc = acc + x[:, k : k + 1] * w[:, k]
+    return acc
+
+
+def pytorch_instance_norm(y: torch.Tensor) -> torch.Tensor:
+    """PyTorch's CPU instance norm over the rows of (N, C): f64 sums, f32 mean and variance, x * scale + offset
+    fused (core/src/nn/norm.rs computes the same)."""
+    n = y.shape[0]
+    mean = (y.double().sum(0) / n).float()
+    variance = ((y - mean) ** 2).double().sum(0).float() / np.float32(n)
+    scale = (1 / torch.sqrt(variance.double() + 1e-5)).float()
+    offset = -(mean * scale)
+    return (y.double() * scale.double() + offset.double()).float()
+
+
+@pytest.mark.parametrize("case", CASES, ids=case_id)
+def test_reference_encoder_arithmetic(case, model):
+    """The arithmetic the Rust core follows reproduces the reference encoder bit for bit: unfolded residual
+    blocks, ordered fused multiply-adds, PyTorch's instance norm; sets under SMALL_SET points need the
+    reference BLAS's other path (plain multiply-adds, bias first), which the Rust core does not imitate."""
+    if case is None:
+        require(FIXTURES)
+    fx = Fixture(case)
+    encoder = model.matcher.raw_matcher.kp2d_enc
+    with torch.no_grad():
+        for points, stage in (("pts2d", "enc2d"), ("pts3d_bvs", "enc3d")):
+            x = fx.tensor(points)
+            fused = len(x) >= SMALL_SET
+            x = ordered_linear(x, encoder.conv_in[0], fused)
+            for i in range(encoder.blocks):
+                block = getattr(encoder, f"conv_{i}")
+                y = ordered_linear(ordered_linear(x, block.preconv[0], fused), block.conv1[0], fused)
+                y = pytorch_instance_norm(ordered_linear(pytorch_instance_norm(y), block.conv2[0], fused))
+                x = torch.relu(y) + x
+            np.testing.assert_array_equal(x.numpy(), fx.array(stage), err_msg=f"{case.name} {stage}")

@@ -41,7 +41,10 @@ def assert_agree(report: dict, min_agreement: float) -> None:
     for stage, diff in report["stages"].items():
         scale = max(1.0, report["reference_max"].get(stage, 1.0))
         assert diff <= RELATIVE_TOLERANCE * scale, f"stage {stage}: |rust - torch| = {diff} (scale {scale})"
-    assert report["sinkhorn_iterations"] == report["reference_iterations"]
+    # The early stop compares ||u - u_prev|| with 1e-6, where f32 rounding of the potentials (~1e-7 per entry over
+    # hundreds of entries) is of the same size: features ~1e-5 apart (EdgeConv and attention sum in other orders
+    # here) can stop one iteration apart. Against the reference fixtures the counts are equal (conformance.rs).
+    assert abs(report["sinkhorn_iterations"] - report["reference_iterations"]) <= 1, report
     assert report["match_agreement"] >= min_agreement, report
 
 
