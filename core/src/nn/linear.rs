@@ -14,7 +14,7 @@ use crate::weights::{Linear, MAX_FEATURE_DIM};
 /// Output rows computed together.
 pub const ROW_BLOCK: usize = 4;
 /// Points computed together.
-pub const COL_BLOCK: usize = 8;
+pub const COL_BLOCK: usize = 16;
 /// Widest input of any layer (the self-attention fusing conv, 4d).
 pub const MAX_INPUT: usize = 4 * MAX_FEATURE_DIM;
 
