@@ -291,11 +291,11 @@ const fn spec(
 
 /// Number of tensors a blob with this configuration holds.
 pub fn tensor_count(config: &ModelConfig) -> usize {
-    1 + 3 * usize::from(config.encoder_blocks)
+    1 + RESIDUAL_BLOCK_TENSORS * usize::from(config.encoder_blocks)
         + 5 * SELF_LAYERS
         + 6
         + 1
-        + 3 * usize::from(config.classifier_blocks)
+        + RESIDUAL_BLOCK_TENSORS * usize::from(config.classifier_blocks)
         + 1
 }
 
@@ -314,10 +314,11 @@ pub fn tensor_spec(config: &ModelConfig, index: usize) -> Option<TensorSpec> {
         return Some(spec("encoder.input", 0, d, 2, true));
     }
     i -= 1;
-    if i < 3 * eb {
-        return Some(spec(BLOCK_ROLES[0][i % 3], i / 3, d, d, true));
+    if i < RESIDUAL_BLOCK_TENSORS * eb {
+        let (block, role) = (i / RESIDUAL_BLOCK_TENSORS, i % RESIDUAL_BLOCK_TENSORS);
+        return Some(spec(BLOCK_ROLES[0][role], block, d, d, true));
     }
-    i -= 3 * eb;
+    i -= RESIDUAL_BLOCK_TENSORS * eb;
     if i < 5 * SELF_LAYERS {
         let layer = i / 5;
         return Some(match i % 5 {
@@ -344,10 +345,11 @@ pub fn tensor_spec(config: &ModelConfig, index: usize) -> Option<TensorSpec> {
         return Some(spec("classifier.input", 0, c, 2 * d, true));
     }
     i -= 1;
-    if i < 3 * cb {
-        return Some(spec(BLOCK_ROLES[1][i % 3], i / 3, c, c, true));
+    if i < RESIDUAL_BLOCK_TENSORS * cb {
+        let (block, role) = (i / RESIDUAL_BLOCK_TENSORS, i % RESIDUAL_BLOCK_TENSORS);
+        return Some(spec(BLOCK_ROLES[1][role], block, c, c, true));
     }
-    i -= 3 * cb;
+    i -= RESIDUAL_BLOCK_TENSORS * cb;
     if i == 0 {
         return Some(spec("classifier.output", 0, 1, c, true));
     }
@@ -433,8 +435,11 @@ fn read_f32(bytes: &[u8], index: usize) -> Option<f32> {
     Some(f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
 }
 
+/// Tensors of one residual block in the blob: preconv, conv1, conv2.
+pub const RESIDUAL_BLOCK_TENSORS: usize = 3;
+
 /// Tensor roles of a residual block's convolutions, in blob order: encoder, classifier.
-const BLOCK_ROLES: [[&str; 3]; 2] = [
+const BLOCK_ROLES: [[&str; RESIDUAL_BLOCK_TENSORS]; 2] = [
     [
         "encoder.block.preconv",
         "encoder.block.conv1",
@@ -466,9 +471,9 @@ impl<'a> ResidualBlockWeights<'a> {
         conv2: Linear::EMPTY,
     };
 
-    /// The convolution at blob position `i % 3` of the block.
-    fn slot(&mut self, i: usize) -> &mut Linear<'a> {
-        match i % 3 {
+    /// The convolution at position `role` (< [`RESIDUAL_BLOCK_TENSORS`]) of the block.
+    fn slot(&mut self, role: usize) -> &mut Linear<'a> {
+        match role {
             0 => &mut self.preconv,
             1 => &mut self.conv1,
             _ => &mut self.conv2,
@@ -635,11 +640,12 @@ impl<'a> Model<'a> {
             return;
         }
         i -= 1;
-        if i < 3 * eb {
-            *self.encoder.blocks[i / 3].slot(i) = linear;
+        if i < RESIDUAL_BLOCK_TENSORS * eb {
+            let block = &mut self.encoder.blocks[i / RESIDUAL_BLOCK_TENSORS];
+            *block.slot(i % RESIDUAL_BLOCK_TENSORS) = linear;
             return;
         }
-        i -= 3 * eb;
+        i -= RESIDUAL_BLOCK_TENSORS * eb;
         if i < 5 * SELF_LAYERS {
             let layer = &mut self.self_layers[i / 5];
             match i % 5 {
@@ -670,8 +676,9 @@ impl<'a> Model<'a> {
             return;
         }
         i -= 1;
-        if i < 3 * cb {
-            *self.classifier.blocks[i / 3].slot(i) = linear;
+        if i < RESIDUAL_BLOCK_TENSORS * cb {
+            let block = &mut self.classifier.blocks[i / RESIDUAL_BLOCK_TENSORS];
+            *block.slot(i % RESIDUAL_BLOCK_TENSORS) = linear;
             return;
         }
         self.classifier.output = linear;

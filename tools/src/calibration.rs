@@ -7,10 +7,10 @@
 //! attention, cross attention, classifier; supp. "Architecture Details") on the converted
 //! tensors (split EdgeConv weights). Layers followed by an instance norm, directly or
 //! through another linear layer, see their inputs centred per set, because the norm
-//! removes any error that is constant over the set. The two halves of an EdgeConv layer act together on the edge
-//! `[x_i; x_j]`, so they share one joint moment matrix.
+//! removes any error that is constant over the set. The two halves of an EdgeConv layer
+//! act together on the edge `[x_i; x_j]`, so they share one joint moment matrix.
 
-use gomatch::weights::ModelConfig;
+use gomatch::weights::{ModelConfig, RESIDUAL_BLOCK_TENSORS};
 use gomatch::{Matcher, Model, Precision};
 use rand::seq::SliceRandom;
 use rand::{RngExt, SeedableRng};
@@ -618,7 +618,7 @@ impl Engine<'_> {
         usize::from(self.config.encoder_blocks)
     }
     fn self_base(&self, layer: usize) -> usize {
-        1 + 3 * self.encoder_blocks() + 5 * layer
+        1 + RESIDUAL_BLOCK_TENSORS * self.encoder_blocks() + 5 * layer
     }
     fn cross_base(&self) -> usize {
         self.self_base(2)
@@ -783,7 +783,8 @@ impl Engine<'_> {
         blocks: usize,
     ) -> anyhow::Result<Vec<Both>> {
         for b in 0..blocks {
-            let (preconv, conv1, conv2) = (first + 3 * b, first + 3 * b + 1, first + 3 * b + 2);
+            let preconv = first + RESIDUAL_BLOCK_TENSORS * b;
+            let (conv1, conv2) = (preconv + 1, preconv + 2);
             self.fit(preconv, &x.iter().collect::<Vec<_>>(), true)?;
             let h0: Vec<Both> = x.iter().map(|x| self.apply(preconv, x)).collect();
             self.fit(conv1, &h0.iter().collect::<Vec<_>>(), true)?;
@@ -939,7 +940,11 @@ impl Engine<'_> {
         let x = inputs.iter().map(|x| self.apply(first, x)).collect();
         let blocks = usize::from(self.config.classifier_blocks);
         let x = self.residual_blocks(x, first + 1, blocks)?;
-        self.fit(first + 1 + 3 * blocks, &x.iter().collect::<Vec<_>>(), false)
+        self.fit(
+            first + 1 + RESIDUAL_BLOCK_TENSORS * blocks,
+            &x.iter().collect::<Vec<_>>(),
+            false,
+        )
     }
 }
 
