@@ -6,7 +6,9 @@
 //! flash). The inner block keeps `ROW_BLOCK x COL_BLOCK` accumulators in registers; the
 //! sum over `k` runs in order for every output with fused multiply-adds, as the
 //! reference's BLAS does, so results neither depend on SIMD width nor differ from the
-//! reference's f32 products.
+//! reference's f32 products. On sets of fewer than [`SMALL_SET`] points the reference's
+//! BLAS takes its small-matrix path instead (bias first, separate multiply and add), and
+//! so does this kernel.
 
 use super::fma::mul_add;
 use crate::weights::{Linear, MAX_FEATURE_DIM};
@@ -17,6 +19,10 @@ pub const ROW_BLOCK: usize = 4;
 pub const COL_BLOCK: usize = 16;
 /// Widest input of any layer (the self-attention fusing conv, 4d).
 pub const MAX_INPUT: usize = 4 * MAX_FEATURE_DIM;
+/// Fewest points of a set on which the reference's BLAS sums with fused multiply-adds
+/// and the bias last; on smaller sets it starts from the bias and multiplies and adds
+/// separately (measured on the reference fixtures, see README.md, "Conformance").
+pub const SMALL_SET: usize = 12;
 
 /// A source of weight rows decoded to f32.
 pub trait WeightRows {
@@ -81,7 +87,8 @@ impl WeightRows for ColumnSlice<'_, '_> {
 
 /// Channel-major input of up to three parts stacked along channels (a concatenation
 /// without a copy). Part `p` holds `rows[p]` channels; channel `r` of part `p` is
-/// `parts[p][r * stride + start..][..n]`.
+/// `parts[p][r * stride + start..][..n]`. `set` is the number of points of the whole set
+/// the layer runs on (it picks the summation path, see [`SMALL_SET`]).
 #[derive(Clone, Copy)]
 pub struct Input<'a> {
     parts: [&'a [f32]; 3],
@@ -89,6 +96,7 @@ pub struct Input<'a> {
     stride: usize,
     start: usize,
     n: usize,
+    set: usize,
 }
 
 impl<'a> Input<'a> {
@@ -110,7 +118,13 @@ impl<'a> Input<'a> {
             stride: n,
             start: 0,
             n,
+            set: n,
         }
+    }
+
+    /// The same matrix, a tile of a set of `set` points.
+    pub fn of_set(self, set: usize) -> Self {
+        Input { set, ..self }
     }
 
     /// The points `start..start + len` only.
@@ -206,16 +220,23 @@ pub fn linear<W: WeightRows>(
                 let mut values = [0.0f32; COL_BLOCK];
                 while i0 < t1 {
                     let len = COL_BLOCK.min(t1 - i0);
-                    let acc = if len == COL_BLOCK {
-                        block::<true>(weights, input, i0, len)
-                    } else {
-                        block::<false>(weights, input, i0, len)
-                    };
-                    for (b, a) in acc.iter().enumerate().take(live) {
-                        for t in 0..len {
-                            values[t] = a[t] * scale[r + b] + bias[r + b];
+                    if input.set < SMALL_SET {
+                        let acc = small_block(weights, input, i0, len, &scale[r..], &bias[r..]);
+                        for (b, a) in acc.iter().enumerate().take(live) {
+                            emit(p0 + r + b, i0, &a[..len]);
                         }
-                        emit(p0 + r + b, i0, &values[..len]);
+                    } else {
+                        let acc = if len == COL_BLOCK {
+                            block::<true>(weights, input, i0, len)
+                        } else {
+                            block::<false>(weights, input, i0, len)
+                        };
+                        for (b, a) in acc.iter().enumerate().take(live) {
+                            for t in 0..len {
+                                values[t] = a[t] * scale[r + b] + bias[r + b];
+                            }
+                            emit(p0 + r + b, i0, &values[..len]);
+                        }
                     }
                     i0 += len;
                 }
@@ -260,6 +281,35 @@ fn block<const FULL: bool>(
                     a[t] = mul_add(wb, x[t], a[t]);
                 }
             }
+        }
+    }
+    acc
+}
+
+/// One block on a set of fewer than [`SMALL_SET`] points, as the reference's BLAS sums
+/// there: each output starts from its bias and adds the products of the dequantized
+/// weights (`scale x W`), one rounding for the product and one for the sum.
+fn small_block(
+    w: &[[f32; ROW_BLOCK]],
+    input: &Input<'_>,
+    i0: usize,
+    len: usize,
+    scale: &[f32],
+    bias: &[f32],
+) -> [[f32; COL_BLOCK]; ROW_BLOCK] {
+    let mut acc: [[f32; COL_BLOCK]; ROW_BLOCK] =
+        core::array::from_fn(|b| [bias.get(b).copied().unwrap_or(0.0); COL_BLOCK]);
+    let mut weights = w.iter();
+    for (part, &rows) in input.parts.iter().zip(&input.rows) {
+        let mut rest = part.get(input.start + i0..).unwrap_or(&[]);
+        for wk in weights.by_ref().take(rows) {
+            for (b, a) in acc.iter_mut().enumerate() {
+                let wb = wk[b] * scale.get(b).copied().unwrap_or(0.0);
+                for (at, &x) in a[..len].iter_mut().zip(rest) {
+                    *at += wb * x;
+                }
+            }
+            rest = rest.get(input.stride..).unwrap_or(&[]);
         }
     }
     acc
@@ -355,6 +405,63 @@ mod tests {
                 assert_eq!(out[r * n + i], expected, "row {r} point {i}");
             }
         }
+    }
+
+    /// Both summation paths, bit for bit, on values whose rounding tells them apart: fused
+    /// multiply-adds in order then the bias on a set of [`SMALL_SET`] points, bias first with
+    /// separate multiply and add on a smaller set (and on a tile of such a set).
+    #[test]
+    fn sums_as_the_reference_blas_on_large_and_small_sets() {
+        let (rows, cols) = (3, 5);
+        let w: [f32; 15] = core::array::from_fn(|i| 1.0 / (i as f32 + 3.0) - 0.21);
+        let bias = [0.7f32, -1.3, 0.1];
+        let dense = Dense {
+            w: &w,
+            rows,
+            cols,
+            bias: &bias,
+        };
+        let x: [f32; 5 * SMALL_SET] = core::array::from_fn(|i| libm::sinf(i as f32 * 1.7) * 3.0);
+        let fused = |r: usize, i: usize, n: usize| {
+            (0..cols).fold(0.0f32, |acc, k| {
+                super::mul_add(w[r * cols + k], x[k * n + i], acc)
+            }) + bias[r]
+        };
+        let plain = |r: usize, i: usize, n: usize| {
+            (0..cols).fold(bias[r], |acc, k| acc + w[r * cols + k] * x[k * n + i])
+        };
+        let mut paths_differ = false;
+        for n in [SMALL_SET, SMALL_SET - 1] {
+            let mut out = [0.0f32; 3 * SMALL_SET];
+            linear(
+                &dense,
+                &Input::one(&x[..cols * n], cols, n),
+                0..rows,
+                |r, i0, v| store(&mut out, n, r, i0, v),
+            );
+            let mut tile = [0.0f32; 3 * 2];
+            let window = Input::one(&x[..cols * n], cols, n).columns(3, 2);
+            linear(&dense, &window, 0..rows, |r, i0, v| {
+                store(&mut tile, 2, r, i0, v)
+            });
+            for r in 0..rows {
+                for i in 0..n {
+                    let expected = if n < SMALL_SET {
+                        plain(r, i, n)
+                    } else {
+                        fused(r, i, n)
+                    };
+                    assert_eq!(
+                        out[r * n + i].to_bits(),
+                        expected.to_bits(),
+                        "n {n} row {r} point {i}"
+                    );
+                    paths_differ |= plain(r, i, n) != fused(r, i, n);
+                }
+                assert_eq!(tile[r * 2..r * 2 + 2], out[r * n + 3..r * n + 5]);
+            }
+        }
+        assert!(paths_differ, "the test values do not tell the paths apart");
     }
 
     #[test]

@@ -59,9 +59,12 @@ fn conv1_of_preconv(
         linear(&w.preconv, &input, 0..d, |r, i0, v| {
             store(tile, len, r, i0, v)
         });
-        linear(&w.conv1, &Input::one(tile, d, len), 0..d, |r, i0, v| {
-            store(out, n, r, t0 + i0, v)
-        });
+        linear(
+            &w.conv1,
+            &Input::one(tile, d, len).of_set(n),
+            0..d,
+            |r, i0, v| store(out, n, r, t0 + i0, v),
+        );
         t0 += len;
     }
 }

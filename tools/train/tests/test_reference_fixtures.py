@@ -189,7 +189,7 @@ def pytorch_instance_norm(y: torch.Tensor) -> torch.Tensor:
 def test_reference_encoder_arithmetic(case, model):
     """The arithmetic the Rust core follows reproduces the reference encoder bit for bit: unfolded residual
     blocks, ordered fused multiply-adds, PyTorch's instance norm; sets under SMALL_SET points need the
-    reference BLAS's other path (plain multiply-adds, bias first), which the Rust core does not imitate."""
+    reference BLAS's small-matrix path (plain multiply-adds, bias first), which the Rust core follows there too."""
     if case is None:
         require(FIXTURES)
     fx = Fixture(case)
