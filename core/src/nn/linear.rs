@@ -192,6 +192,7 @@ pub fn linear<W: WeightRows>(
     let mut scale = [0.0f32; PANEL_MAX_ROWS];
     let mut bias = [0.0f32; PANEL_MAX_ROWS];
     let n = input.n;
+    let small_set = input.set < SMALL_SET;
     let mut p0 = rows.start;
     while p0 < rows.end {
         let count = panel_len.min(rows.end - p0);
@@ -220,8 +221,10 @@ pub fn linear<W: WeightRows>(
                 let mut values = [0.0f32; COL_BLOCK];
                 while i0 < t1 {
                     let len = COL_BLOCK.min(t1 - i0);
-                    if input.set < SMALL_SET {
-                        let acc = small_block(weights, input, i0, len, &scale[r..], &bias[r..]);
+                    if small_set {
+                        let rows = r..r + ROW_BLOCK;
+                        let acc =
+                            small_block(weights, input, i0, len, &scale[rows.clone()], &bias[rows]);
                         for (b, a) in acc.iter().enumerate().take(live) {
                             emit(p0 + r + b, i0, &a[..len]);
                         }
@@ -288,7 +291,8 @@ fn block<const FULL: bool>(
 
 /// One block on a set of fewer than [`SMALL_SET`] points, as the reference's BLAS sums
 /// there: each output starts from its bias and adds the products of the dequantized
-/// weights (`scale x W`), one rounding for the product and one for the sum.
+/// weights (`scale x W`), one rounding for the product and one for the sum. `scale` and
+/// `bias` hold the block's [`ROW_BLOCK`] rows.
 fn small_block(
     w: &[[f32; ROW_BLOCK]],
     input: &Input<'_>,
@@ -297,14 +301,16 @@ fn small_block(
     scale: &[f32],
     bias: &[f32],
 ) -> [[f32; COL_BLOCK]; ROW_BLOCK] {
-    let mut acc: [[f32; COL_BLOCK]; ROW_BLOCK] =
-        core::array::from_fn(|b| [bias.get(b).copied().unwrap_or(0.0); COL_BLOCK]);
+    let mut acc = [[0.0f32; COL_BLOCK]; ROW_BLOCK];
+    for (a, &b) in acc.iter_mut().zip(bias) {
+        *a = [b; COL_BLOCK];
+    }
     let mut weights = w.iter();
     for (part, &rows) in input.parts.iter().zip(&input.rows) {
         let mut rest = part.get(input.start + i0..).unwrap_or(&[]);
         for wk in weights.by_ref().take(rows) {
-            for (b, a) in acc.iter_mut().enumerate() {
-                let wb = wk[b] * scale.get(b).copied().unwrap_or(0.0);
+            for ((a, &wb), &s) in acc.iter_mut().zip(wk).zip(scale) {
+                let wb = wb * s;
                 for (at, &x) in a[..len].iter_mut().zip(rest) {
                     *at += wb * x;
                 }
