@@ -7,7 +7,8 @@ One forward pass per sample (InstanceNorm statistics are per set and set sizes d
 samples are accumulated (mean loss) before each Adam step, optionally shared among `--workers` processes. Every
 epoch draws a fresh subsample of every training sample (outlier rate and point budget, see dataset.py) from a
 generator seeded by (seed, epoch, sample), so a run resumed from a checkpoint repeats exactly what the uninterrupted
-run would have done.
+run would have done. `--init MODEL` starts a new run (fresh optimizer, epoch 0) from an export's weights: a
+fine-tuning stage, e.g. with another `--outlier-rate`.
 
 Files in DIR:
     checkpoint.pt       model, optimizer, position (epoch, batch), RNG states, history; every epoch and every
@@ -30,7 +31,7 @@ import torch
 from .config import ModelConfig
 from .dataset import load_samples, subsample
 from .evaluate import Totals, assess
-from .export import save_export
+from .export import load_export, save_export
 from .model import GoMatch
 from .parallel import Group, launch
 from .runtime import configure_cpu
@@ -39,7 +40,7 @@ CHECKPOINT = "checkpoint.pt"
 # Options that must not change when a run is resumed (they define what the run computes).
 FIXED_ON_RESUME = (
     "train", "val", "seed", "batch", "lr", "max_points", "min_points", "outlier_rate", "val_max_points",
-    "feature_dim", "encoder_blocks", "classifier_blocks",
+    "feature_dim", "encoder_blocks", "classifier_blocks", "init",
 )  # fmt: skip
 VAL_MIN_POINTS = 10  # reference: evaluation counts a sample as failed below 10 points; no other filtering
 
@@ -65,6 +66,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--encoder-blocks", type=int, default=ModelConfig.encoder_blocks)
     p.add_argument("--classifier-blocks", type=int, default=ModelConfig.classifier_blocks)
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt when it exists")
+    p.add_argument("--init", default=None, metavar="MODEL",
+                   help="start a new run from the weights of this export (a fine-tuning stage; same configuration)")
     p.add_argument("--max-minutes", type=float, default=None, help="checkpoint and stop after this wall time")
     p.add_argument("--max-steps", type=int, default=None, help="checkpoint and stop after this many optimizer steps")
     p.add_argument("--ckpt-minutes", type=float, default=10.0, help="checkpoint interval within an epoch")
@@ -167,7 +170,17 @@ class Run:
         np.random.seed(args.seed)
         random.seed(args.seed)
         self.model = GoMatch(model_config(args)).to(self.device)
+        if args.init is not None:
+            self.start_from(args.init)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=args.lr)
+
+    def start_from(self, path: str) -> None:
+        """Initial weights from an export, whose configuration must be this run's."""
+        initial = load_export(path)
+        if initial.config != self.model.config:
+            raise SystemExit(f"--init {path}: configuration {initial.config.to_json()} differs from this run's "
+                             f"{self.model.config.to_json()}")  # fmt: skip
+        self.model.load_state_dict(initial.state_dict())
 
     def fixed_options(self) -> dict:
         return {name: getattr(self.args, name) for name in FIXED_ON_RESUME}

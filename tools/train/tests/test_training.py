@@ -89,3 +89,15 @@ def test_validate_cli_reports_the_training_validation_metrics(data, tmp_path, ca
     recorded = json.loads((out / "history.jsonl").read_text().splitlines()[0])
     for key in ("loss", "match_precision", "match_recall", "cls_precision", "cls_recall"):
         assert reported[key] == pytest.approx(recorded[key], rel=1e-6)
+
+
+def test_init_starts_a_new_run_from_an_export(data, tmp_path):
+    first = tmp_path / "first"
+    train.main(cli(data, first, "--epochs", "1"))
+    start = exported(first / "last.safetensors")
+    run = train.Run(train.parse_args(cli(data, tmp_path / "tuned", "--init", str(first / "last.safetensors"))))
+    assert run.epoch == 0 and run.step == 0
+    assert all(torch.equal(tensor, start[name]) for name, tensor in run.model.state_dict().items())
+    wider = cli(data, tmp_path / "wider", "--init", str(first / "last.safetensors"), "--feature-dim", "48")
+    with pytest.raises(SystemExit, match="differs from this run"):
+        train.Run(train.parse_args(wider))
