@@ -42,6 +42,7 @@ FIXED_ON_RESUME = (
     "train", "val", "seed", "batch", "lr", "max_points", "min_points", "outlier_rate", "val_max_points",
     "feature_dim", "encoder_blocks", "classifier_blocks", "init",
 )  # fmt: skip
+NO_OUTLIER_CONTROL = (0.0, 1.0)
 VAL_MIN_POINTS = 10  # reference: evaluation counts a sample as failed below 10 points; no other filtering
 
 
@@ -109,12 +110,17 @@ def epoch_batches(samples: list, epoch: int, args) -> list:
     return [prepared[i : i + args.batch] for i in range(0, len(prepared), args.batch)]
 
 
-def validation_set(samples: list, seed: int, max_points: int) -> list:
-    """Validation samples, subsampled once (no outlier control, at most `max_points` per set)."""
+def validation_set(
+    samples: list, seed: int, max_points: int, outlier_rate=NO_OUTLIER_CONTROL, scene: str | None = None
+) -> list:
+    """Validation samples, subsampled once (at most `max_points` per set; by default no outlier control, as the
+    paper's tests), optionally only those of one scene (the others do not change which points are drawn)."""
     prepared = []
     for index, sample in enumerate(samples):
+        if scene is not None and not sample.name.startswith(scene + "/"):
+            continue
         rng = np.random.default_rng([seed, 1_000_003, index])
-        drawn = subsample(sample, rng, (0.0, 1.0), max_points, VAL_MIN_POINTS)
+        drawn = subsample(sample, rng, tuple(outlier_rate), max_points, VAL_MIN_POINTS)
         if drawn is not None:
             prepared.append(drawn)
     return prepared

@@ -1,9 +1,11 @@
 """Evaluate an exported model on a dataset file: the trainer's validation metrics.
 
     python -m gomatch_train.validate MODEL.safetensors DATA.safetensors [--max-points 256] [--seed 0] [--threads 1]
+        [--scene colmap/sceaux] [--outlier-rate LOW HIGH]
 
 Samples are subsampled as the trainer's validation set (no outlier control, at most --max-points per set; the same
---seed gives the same subsample as a training run with that seed).
+--seed gives the same subsample as a training run with that seed). `--scene` keeps one scene's samples;
+`--outlier-rate` controls the outlier rate as the trainer does (diagnostics: how matching depends on it).
 """
 
 import argparse
@@ -12,7 +14,7 @@ import json
 from .dataset import load_samples
 from .export import load_export
 from .runtime import configure_cpu
-from .train import validate, validation_set
+from .train import NO_OUTLIER_CONTROL, VAL_MIN_POINTS, validate, validation_set
 
 
 def main(argv=None) -> None:
@@ -23,10 +25,15 @@ def main(argv=None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--scene", default=None, help="only the samples of this scene (e.g. colmap/sceaux)")
+    p.add_argument("--outlier-rate", type=float, nargs=2, default=list(NO_OUTLIER_CONTROL), metavar=("LOW", "HIGH"),
+                   help="outlier-rate range as in training (default: no control)")
     args = p.parse_args(argv)
     configure_cpu(args.threads)
     model = load_export(args.model).to(args.device)
-    val = validation_set(load_samples(args.data), args.seed, args.max_points)
+    val = validation_set(load_samples(args.data), args.seed, args.max_points, args.outlier_rate, args.scene)
+    if not val:
+        raise SystemExit(f"no sample of {args.data} (scene {args.scene!r}) has >= {VAL_MIN_POINTS} points in both sets")
     print(json.dumps(validate(model, val, args.device), indent=1))
 
 

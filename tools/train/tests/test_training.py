@@ -9,6 +9,7 @@ from safetensors import safe_open
 
 from gomatch_train import train, validate
 from gomatch_train.config import ModelConfig
+from gomatch_train.dataset import Sample
 from gomatch_train.evaluate import assess
 from gomatch_train.export import load_export
 from gomatch_train.model import GoMatch
@@ -101,3 +102,16 @@ def test_init_starts_a_new_run_from_an_export(data, tmp_path):
     wider = cli(data, tmp_path / "wider", "--init", str(first / "last.safetensors"), "--feature-dim", "48")
     with pytest.raises(SystemExit, match="differs from this run"):
         train.Run(train.parse_args(wider))
+
+
+def test_validation_set_selects_a_scene_and_controls_the_outlier_rate():
+    rng = np.random.default_rng(3)
+    samples = [Sample(*random_sample(rng, 300, 60, 150), f"{scene}/q{i}/v0") for i, scene in enumerate("abab")]
+    natural = train.validation_set(samples, 0, 1024)
+    only_b = train.validation_set(samples, 0, 1024, scene="b")
+    assert len(natural) == 4 and len(only_b) == 2
+    assert all(np.array_equal(x[0], y[0]) for x, y in zip(only_b, natural[1::2])), "filtering changed the draw"
+    for pts2d, pts3d, match in train.validation_set(samples, 0, 1024, outlier_rate=(0.5, 0.5)):
+        inliers = int((match >= 0).sum())
+        assert len(pts2d) - inliers == inliers and len(pts3d) - inliers == inliers
+    assert any(len(p[0]) > 2 * int((p[2] >= 0).sum()) for p in natural), "no sample has more outliers than inliers"
