@@ -6,10 +6,13 @@
 Samples are subsampled as the trainer's validation set (no outlier control, at most --max-points per set; the same
 --seed gives the same subsample as a training run with that seed). `--scene` keeps one scene's samples;
 `--outlier-rate` controls the outlier rate as the trainer does (diagnostics: how matching depends on it).
+Besides the trainer's metrics it prints `keypoint_inlier_rate`, the mean share of query keypoints with a match.
 """
 
 import argparse
 import json
+
+import numpy as np
 
 from .dataset import load_samples
 from .export import load_export
@@ -34,7 +37,9 @@ def main(argv=None) -> None:
     val = validation_set(load_samples(args.data), args.seed, args.max_points, args.outlier_rate, args.scene)
     if not val:
         raise SystemExit(f"no sample of {args.data} (scene {args.scene!r}) has >= {VAL_MIN_POINTS} points in both sets")
-    print(json.dumps(validate(model, val, args.device), indent=1))
+    summary = validate(model, val, args.device)
+    summary["keypoint_inlier_rate"] = float(np.mean([(match >= 0).mean() for _, _, match in val]))
+    print(json.dumps(summary, indent=1))
 
 
 if __name__ == "__main__":

@@ -9,7 +9,7 @@ from safetensors import safe_open
 
 from gomatch_train import train, validate
 from gomatch_train.config import ModelConfig
-from gomatch_train.dataset import Sample
+from gomatch_train.dataset import Sample, load_samples
 from gomatch_train.evaluate import assess
 from gomatch_train.export import load_export
 from gomatch_train.model import GoMatch
@@ -90,6 +90,9 @@ def test_validate_cli_reports_the_training_validation_metrics(data, tmp_path, ca
     recorded = json.loads((out / "history.jsonl").read_text().splitlines()[0])
     for key in ("loss", "match_precision", "match_recall", "cls_precision", "cls_recall"):
         assert reported[key] == pytest.approx(recorded[key], rel=1e-6)
+    val = train.validation_set(load_samples(str(data / "val.safetensors")), 0, 64)
+    assert reported["keypoint_inlier_rate"] == pytest.approx(np.mean([(m >= 0).mean() for _, _, m in val]))
+    assert 0.0 < reported["keypoint_inlier_rate"] < 1.0
 
 
 def test_init_starts_a_new_run_from_an_export(data, tmp_path):
