@@ -42,7 +42,7 @@ FIXED_ON_RESUME = (
     "train", "val", "seed", "batch", "lr", "max_points", "min_points", "outlier_rate", "val_max_points",
     "feature_dim", "encoder_blocks", "classifier_blocks", "init",
 )  # fmt: skip
-NO_OUTLIER_CONTROL = (0.0, 1.0)
+NO_OUTLIER_CONTROL = (0.0, 1.0)  # outlier-rate range that keeps every point (the paper's tests)
 VAL_MIN_POINTS = 10  # reference: evaluation counts a sample as failed below 10 points; no other filtering
 
 
