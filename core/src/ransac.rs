@@ -822,8 +822,17 @@ mod tests {
             let inliers = count - count * outlier_percent / 100;
             let scene = Scene::new(seed, count, inliers, 0.0);
             let mut ws = workspace();
-        let estimate = estimate_pose(&scene.bearings, &scene.points, &RansacConfig::new(), &mut ws).unwrap();
-            prop_assert!(close(&estimate.pose, &scene.pose, 1e-6));
+            let config = RansacConfig::new();
+            let estimate = estimate_pose(&scene.bearings, &scene.points, &config, &mut ws).unwrap();
+            // The final refinement runs on everything within the LO radius, so an outlier that
+            // happens to lie there (outside the inlier threshold) pulls the pose slightly.
+            let radius2 = (LO_RADIUS_FACTOR * config.threshold).powi(2);
+            let outlier_in_radius = (inliers..count).any(|i| {
+                squared_error(&scene.pose, &scene.bearings[i], &scene.points[i])
+                    .is_some_and(|r2| r2 < radius2)
+            });
+            let tolerance = if outlier_in_radius { 1e-3 } else { 1e-6 };
+            prop_assert!(close(&estimate.pose, &scene.pose, tolerance));
             prop_assert!(estimate.inlier_mask[..inliers].iter().all(|&f| f));
         }
 
