@@ -86,6 +86,12 @@ impl RansacConfig {
         }
     }
 
+    /// Squared LO radius: the correspondences within it form a hypothesis's support and
+    /// enter local optimisation and the final refinement.
+    fn support_limit2(&self) -> f64 {
+        self.threshold * self.threshold * LO_RADIUS_FACTOR * LO_RADIUS_FACTOR
+    }
+
     fn validate(&self) -> Result<()> {
         let invalid = |parameter| Err(Error::InvalidConfig { parameter });
         if self.max_iterations == 0 {
@@ -324,10 +330,7 @@ impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
             workspace,
             n,
             threshold2: config.threshold * config.threshold,
-            support_limit2: config.threshold
-                * config.threshold
-                * LO_RADIUS_FACTOR
-                * LO_RADIUS_FACTOR,
+            support_limit2: config.support_limit2(),
         }
     }
 
@@ -826,10 +829,9 @@ mod tests {
             let estimate = estimate_pose(&scene.bearings, &scene.points, &config, &mut ws).unwrap();
             // The final refinement runs on everything within the LO radius, so an outlier that
             // happens to lie there (outside the inlier threshold) pulls the pose slightly.
-            let radius2 = (LO_RADIUS_FACTOR * config.threshold).powi(2);
             let outlier_in_radius = (inliers..count).any(|i| {
                 squared_error(&scene.pose, &scene.bearings[i], &scene.points[i])
-                    .is_some_and(|r2| r2 < radius2)
+                    .is_some_and(|r2| r2 < config.support_limit2())
             });
             let tolerance = if outlier_in_radius { 1e-3 } else { 1e-6 };
             prop_assert!(close(&estimate.pose, &scene.pose, tolerance));
