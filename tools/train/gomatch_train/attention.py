@@ -18,42 +18,49 @@ LEAKY_SLOPE = 0.2
 
 @torch.no_grad()
 def coordinate_neighbours(coords: torch.Tensor, k: int) -> torch.Tensor:
-    """Indices (N, min(k, N-1)) of each point's nearest neighbours in coordinate space, nearest first.
+    """Indices (N, min(k, N-1)) of each point's nearest neighbours in coordinate space, nearest first; for a batch
+    (B, N, 2) of equal-size sets, (B, N, min(k, N-1)).
 
     Squared distances |a|^2 + |b|^2 - 2ab clamped at 1e-12; the k+1 smallest are taken and the first one (the
     point itself) dropped. The arithmetic order follows the reference so that ties break identically.
     """
-    n = coords.shape[0]
+    c = coords if coords.dim() == 3 else coords.unsqueeze(0)
+    n = c.shape[1]
     if n < 2:
         raise ValueError(f"self attention needs at least 2 points per set, got {n}")
     k = min(k, n - 1)
-    c = coords.unsqueeze(0)
     sq = torch.sum(c**2, dim=-1)
     dist = -2 * torch.matmul(c, c.transpose(1, 2))
     dist += sq[:, :, None]
     dist += sq[:, None, :]
     dist = torch.clamp(dist, min=1e-12)
-    idx = dist.topk(k=k + 1, dim=-1, largest=False, sorted=True)[1]
-    return idx[0, :, 1:]
+    idx = dist.topk(k=k + 1, dim=-1, largest=False, sorted=True)[1][:, :, 1:]
+    return idx if coords.dim() == 3 else idx[0]
 
 
 def edge_conv_max(x: torch.Tensor, neighbours: torch.Tensor, conv: PointLinear) -> torch.Tensor:
-    """max_j LeakyReLU(IN(W concat(f_i, f_j - f_i))) over the neighbours j of each point i.
+    """max_j LeakyReLU(IN(W concat(f_i, f_j - f_i))) over the neighbours j of each point i; x is (N, C) or a batch
+    (B, N, C) with neighbours (N, K) or (B, N, K).
 
     W [f_i, f_j - f_i] = (W_c - W_o) f_i + W_o f_j with W = [W_c | W_o]: two per-point products and a gather of
     (K, N, out) instead of building the (N, K, 2C) edge tensor. LeakyReLU is monotone, so it is applied after
     the max (same result, on N instead of N*K entries).
     """
-    n, c = x.shape
-    k = neighbours.shape[1]
+    xb = x if x.dim() == 3 else x.unsqueeze(0)
+    nb = neighbours if neighbours.dim() == 3 else neighbours.unsqueeze(0)
+    b, n, c = xb.shape
+    k = nb.shape[2]
     out = conv.out_features
     w = conv.matrix()
     w_centre, w_offset = w[:, :c], w[:, c:]
-    both = x @ torch.cat([w_centre - w_offset, w_offset], dim=0).t()
-    centre, offset = both[:, :out], both[:, out:]
-    edges = centre.unsqueeze(0) + offset.index_select(0, neighbours.t().reshape(-1)).view(k, n, out)
-    edges = instance_norm(edges.view(k * n, out)).view(k, n, out)
-    return F.leaky_relu(edges.amax(dim=0), LEAKY_SLOPE)
+    both = xb @ torch.cat([w_centre - w_offset, w_offset], dim=0).t()
+    centre, offset = both[..., :out], both[..., out:]
+    sample = torch.arange(b, device=x.device).unsqueeze(1)
+    gathered = offset[sample, nb.transpose(1, 2).reshape(b, k * n)]
+    edges = centre.unsqueeze(1) + gathered.view(b, k, n, out)
+    edges = instance_norm(edges.view(b, k * n, out)).view(b, k, n, out)
+    result = F.leaky_relu(edges.amax(dim=1), LEAKY_SLOPE)
+    return result if x.dim() == 3 else result[0]
 
 
 class EdgeConvSelfAttention(nn.Module):
@@ -68,7 +75,7 @@ class EdgeConvSelfAttention(nn.Module):
     def update(self, x0: torch.Tensor, neighbours: torch.Tensor) -> torch.Tensor:
         x1 = edge_conv_max(x0, neighbours, self.conv1)
         x2 = edge_conv_max(x1, neighbours, self.conv2)
-        x3 = self.conv3(torch.cat([x0, x1, x2], dim=1))
+        x3 = self.conv3(torch.cat([x0, x1, x2], dim=-1))
         return F.leaky_relu(instance_norm(x3), LEAKY_SLOPE)
 
     def forward(self, desc2d, desc3d, neighbours2d, neighbours3d):
@@ -94,16 +101,16 @@ class MultiHeadAttention(nn.Module):
             p.load_state_dict(self.merge.state_dict())
 
     def split_heads(self, x: torch.Tensor) -> torch.Tensor:
-        """(N, C) -> (heads, N, head_dim)."""
-        return x.view(x.shape[0], self.head_dim, self.heads).permute(2, 0, 1)
+        """(..., N, C) -> (..., heads, N, head_dim)."""
+        return x.view(*x.shape[:-1], self.head_dim, self.heads).movedim(-1, -3)
 
     def forward(self, x: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
         q = self.split_heads(self.proj[0](x))
         k = self.split_heads(self.proj[1](source))
         v = self.split_heads(self.proj[2](source))
-        scores = torch.matmul(q, k.transpose(1, 2)) / self.head_dim**0.5
+        scores = torch.matmul(q, k.transpose(-1, -2)) / self.head_dim**0.5
         message = torch.matmul(torch.softmax(scores, dim=-1), v)
-        return self.merge(message.permute(1, 2, 0).reshape(x.shape[0], -1))
+        return self.merge(message.movedim(-3, -1).reshape(x.shape))
 
 
 class CrossAttention(nn.Module):
@@ -118,7 +125,7 @@ class CrossAttention(nn.Module):
         nn.init.zeros_(self.mlp[3].bias)
 
     def delta(self, x: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
-        return self.mlp(torch.cat([x, self.attn(x, source)], dim=1))
+        return self.mlp(torch.cat([x, self.attn(x, source)], dim=-1))
 
     def forward(self, desc2d, desc3d, neighbours2d, neighbours3d):
         desc2d = desc2d + self.delta(desc2d, desc3d)

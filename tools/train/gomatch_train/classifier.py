@@ -25,3 +25,9 @@ class MatchClassifier(nn.Module):
             i3d, i2d = i3d.expand(2), i2d.expand(2)
         features = torch.cat([desc2d[i2d], desc3d[i3d]], dim=1)
         return self.conv_out(self.encoder(features)).squeeze(1)[:count]
+
+    def forward_batch(self, desc2d, desc3d, i2d: torch.Tensor, i3d: torch.Tensor, valid: torch.Tensor):
+        """Logits (B, M) for a batch: desc (B, N, C), matches (B, M) padded where `valid` (B, M) is false."""
+        sample = torch.arange(len(i2d), device=i2d.device).unsqueeze(1)
+        features = torch.cat([desc2d[sample, i2d], desc3d[sample, i3d]], dim=-1)
+        return self.conv_out(self.encoder(features, valid)).squeeze(-1)

@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .layers import InstanceNorm, PointLinear
+from .layers import PointLinear, instance_norm
 
 
 class ResidualBlock(nn.Module):
@@ -23,16 +23,18 @@ class ResidualBlock(nn.Module):
     def __init__(self, width: int):
         super().__init__()
         self.preconv = nn.Sequential(PointLinear(width, width))
-        self.conv1 = nn.Sequential(PointLinear(width, width), InstanceNorm())
-        self.conv2 = nn.Sequential(PointLinear(width, width), InstanceNorm())
+        self.conv1 = nn.Sequential(PointLinear(width, width))
+        self.conv2 = nn.Sequential(PointLinear(width, width))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = self.conv2(self.conv1(self.preconv(x)))
+    def forward(self, x: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+        y = instance_norm(self.conv1(self.preconv(x)), valid)
+        y = instance_norm(self.conv2(y), valid)
         return F.relu(y) + x
 
 
 class PointResNet(nn.Module):
-    """(N, in_channels) -> (N, width); InstanceNorm statistics run over the N points of the one set given."""
+    """(N, in_channels) -> (N, width), or batched (B, N, in_channels) -> (B, N, width); InstanceNorm statistics
+    run over the N points of each set."""
 
     def __init__(self, in_channels: int, width: int, blocks: int):
         super().__init__()
@@ -41,8 +43,9 @@ class PointResNet(nn.Module):
         for i in range(blocks):
             self.add_module(f"conv_{i}", ResidualBlock(width))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+        """`valid` (B, N): padded sets, InstanceNorm over the valid rows (see `instance_norm`)."""
         x = self.conv_in(x)
         for i in range(self.blocks):
-            x = getattr(self, f"conv_{i}")(x)
+            x = getattr(self, f"conv_{i}")(x, valid)
         return x

@@ -26,17 +26,23 @@ class SampleOutcome:
 
 def assess(result: MatchResult, match: torch.Tensor, threshold: float) -> SampleOutcome:
     """Losses and match counts of one forward pass against the GT `match` (N2,) (3D index or -1)."""
-    labels = classifier_labels(result.i3d, result.i2d, match)
-    kept = result.match_probs.detach() > threshold
-    return SampleOutcome(
-        match_loss=match_loss(result.log_plan, match),
-        cls_loss=classifier_loss(result.cls_logits, labels),
-        proposed=int(labels.numel()),
-        proposed_correct=int(labels.sum().item()),
-        gt_matches=int((match >= 0).sum().item()),
-        kept=int(kept.sum().item()),
-        kept_correct=int((kept & (labels > 0)).sum().item()),
+    return assess_batch(result, match, threshold)[0]
+
+
+def assess_batch(result: MatchResult, match: torch.Tensor, threshold: float) -> list:
+    """`assess` for every sample of a batched result (`GoMatch.forward_batch`) and GT (B, N2); one sync."""
+    labels = classifier_labels(result.i3d, result.i2d, match) * result.valid
+    kept = (result.match_probs.detach() > threshold) & result.valid
+    match_losses = match_loss(result.log_plan, match).reshape(-1)
+    cls_losses = classifier_loss(result.cls_logits, labels, result.valid).reshape(-1)
+    counts = torch.stack(
+        [result.valid.sum(-1), labels.sum(-1), (match >= 0).sum(-1), kept.sum(-1), (kept & (labels > 0)).sum(-1)],
+        dim=-1,
     )
+    return [
+        SampleOutcome(match_losses[b], cls_losses[b], *(int(c) for c in sample_counts))
+        for b, sample_counts in enumerate(counts.reshape(-1, 5).tolist())
+    ]
 
 
 def ratio(num: float, den: float) -> float:

@@ -1,6 +1,7 @@
 """Per-point building blocks shared by every stage.
 
-Features are point-major, shape (N, C): one row per keypoint. The reference stores its 1x1 convolutions with
+Features are point-major, shape (N, C) for one set or (B, N, C) for a batch of equal-size sets: one row per
+keypoint. The reference stores its 1x1 convolutions with
 weights of shape (out, in, 1) or (out, in, 1, 1); `PointLinear` keeps exactly that parameter shape so the
 state_dict names and shapes equal the reference checkpoint's, and applies it as a per-point linear map.
 """
@@ -43,14 +44,30 @@ class PointLinear(nn.Module):
         return F.linear(x, self.matrix(), self.bias)
 
 
-def instance_norm(x: torch.Tensor) -> torch.Tensor:
-    """InstanceNorm without affine parameters over the rows of a point-major (N, C) tensor.
+def instance_norm(x: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+    """InstanceNorm without affine parameters over the rows of a point-major (N, C) or (B, N, C) tensor.
 
     Per channel: (x - mean) / sqrt(biased_var + 1e-5), statistics over the N rows (one set of points). Computed
     on the channel-major view, as the reference's InstanceNorm1d does, so that the rounding is the reference's
-    too (the batch-norm kernel on the point-major layout takes another path, a few ulps away).
+    too (the batch-norm kernel on the point-major layout takes another path, a few ulps away). With `valid`
+    (B, N) the sets are padded: statistics run over each set's valid rows (`masked_instance_norm`).
     """
-    return F.instance_norm(x.t().unsqueeze(0), eps=INSTANCE_NORM_EPS).squeeze(0).t()
+    if valid is not None:
+        return masked_instance_norm(x, valid)
+    batch = x if x.dim() == 3 else x.unsqueeze(0)
+    normed = F.instance_norm(batch.transpose(1, 2), eps=INSTANCE_NORM_EPS).transpose(1, 2)
+    return normed if x.dim() == 3 else normed.squeeze(0)
+
+
+def masked_instance_norm(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """`instance_norm` of (B, N, C) padded sets, statistics over the rows where `valid` (B, N) is true; a set of
+    one row normalises to zero, as the reference's duplicated single row does. Padding rows stay finite."""
+    weight = valid.unsqueeze(-1).to(x.dtype)
+    count = weight.sum(dim=-2, keepdim=True).clamp_min(1.0)
+    mean = (x * weight).sum(dim=-2, keepdim=True) / count
+    centred = x - mean
+    variance = (centred.square() * weight).sum(dim=-2, keepdim=True) / count
+    return centred * torch.rsqrt(variance + INSTANCE_NORM_EPS)
 
 
 class InstanceNorm(nn.Module):

@@ -9,33 +9,37 @@ import torch.nn.functional as F
 
 def match_loss(log_plan: torch.Tensor, match: torch.Tensor) -> torch.Tensor:
     """Eq. 2: -1/N_m (sum log P over GT matches + unmatched 2D in the dustbin row + unmatched 3D in the dustbin
-    column), N_m the number of those entries. Uses log P from the log-domain Sinkhorn directly."""
-    n3d, n2d = log_plan.shape[0] - 1, log_plan.shape[1] - 1
+    column), N_m the number of those entries. Uses log P from the log-domain Sinkhorn directly. Per sample of a
+    batch for (B, N3+1, N2+1) plans and (B, N2) matches."""
+    n3d = log_plan.shape[-2] - 1
     matched = match >= 0
-    i2d = torch.nonzero(matched).squeeze(1)
-    i3d = match[matched]
-    unmatched2d = torch.nonzero(~matched).squeeze(1)
-    has_match3d = torch.zeros(n3d, dtype=torch.bool, device=match.device)
-    has_match3d[i3d] = True
-    unmatched3d = torch.nonzero(~has_match3d).squeeze(1)
-    terms = torch.cat([log_plan[i3d, i2d], log_plan[n3d, unmatched2d], log_plan[unmatched3d, n2d]])
-    return -terms.mean()
+    # Each keypoint's term: its GT 3D point's row, or the dustbin row.
+    rows = torch.where(matched, match, n3d).unsqueeze(-2)
+    terms2d = log_plan[..., :, :-1].gather(-2, rows).squeeze(-2)
+    has_match3d = torch.zeros(log_plan.shape[:-2] + (n3d + 1,), dtype=torch.bool, device=match.device)
+    has_match3d.scatter_(-1, torch.where(matched, match, n3d), True)
+    unmatched3d = ~has_match3d[..., :-1]
+    terms3d = torch.where(unmatched3d, log_plan[..., :-1, -1], 0.0)
+    count = match.shape[-1] + unmatched3d.sum(dim=-1)
+    return -(terms2d.sum(dim=-1) + terms3d.sum(dim=-1)) / count
 
 
 def classifier_labels(i3d: torch.Tensor, i2d: torch.Tensor, match: torch.Tensor) -> torch.Tensor:
-    """1.0 where the proposed match (i3d, i2d) is a GT match, else 0.0."""
-    return (match[i2d] == i3d).float()
+    """1.0 where the proposed match (i3d, i2d) is a GT match, else 0.0 (per sample for (B, M) and (B, N2))."""
+    return (match.gather(-1, i2d) == i3d).float()
 
 
-def classifier_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+def classifier_loss(logits: torch.Tensor, labels: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
     """Eq. 3: mean weighted binary cross-entropy over the N_c matches given to the classifier.
 
     Positives are weighted by #negatives / #positives and negatives by 1, as in the reference; without any
-    positive the loss is zero.
+    positive the loss is zero. For a batch (B, M), one loss per sample over its `valid` matches.
     """
-    positives = labels.sum()
-    if positives == 0:
-        return logits.sum() * 0.0
-    weights = (labels.numel() - positives) / positives * labels + (1.0 - labels)
+    weight = valid.to(logits.dtype) if valid is not None else torch.ones_like(logits)
+    labels = labels * weight
+    positives = labels.sum(dim=-1, keepdim=True)
+    count = weight.sum(dim=-1, keepdim=True)
+    weights = ((count - positives) / positives.clamp_min(1.0) * labels + (1.0 - labels)) * weight
     bce = F.binary_cross_entropy_with_logits(logits, labels, reduction="none")
-    return (weights * bce).mean()
+    loss = (weights * bce).sum(dim=-1, keepdim=True) / count.clamp_min(1.0)
+    return torch.where(positives > 0, loss, 0.0 * loss).squeeze(-1)

@@ -3,6 +3,7 @@ log-domain Sinkhorn (plus the same iteration in the exp domain, used for trainin
 nearest-neighbour assignment.
 
 All matrices are (N3 + 1, N2 + 1): rows are 3D points, columns 2D keypoints, the last row/column the dustbin.
+Distances, costs and both Sinkhorn solvers also take a batch (B, ...) of equal-size problems (batched training).
 """
 
 import torch
@@ -15,17 +16,19 @@ MAX_EXP_DOMAIN_RANGE = 80.0
 def descriptor_distances(desc3d: torch.Tensor, desc2d: torch.Tensor) -> torch.Tensor:
     """Euclidean distances (N3, N2) between descriptors: sqrt(max(|a|^2 + |b|^2 - 2ab, 1e-30))."""
     sq3d = desc3d.pow(2).sum(dim=-1, keepdim=True)
-    sq2d = desc2d.pow(2).sum(dim=-1, keepdim=True)
-    squared = torch.addmm(sq2d.t(), desc3d, desc2d.t(), alpha=-2) + sq3d
+    sq2d = desc2d.pow(2).sum(dim=-1, keepdim=True).transpose(-1, -2)
+    if desc3d.dim() == 2:
+        squared = torch.addmm(sq2d, desc3d, desc2d.t(), alpha=-2) + sq3d
+    else:
+        squared = torch.baddbmm(sq2d, desc3d, desc2d.transpose(1, 2), alpha=-2) + sq3d
     return squared.clamp_min(1e-30).sqrt()
 
 
 def cost_with_dustbins(distances: torch.Tensor, bin_score: torch.Tensor) -> torch.Tensor:
     """Append a dustbin row and column filled with the learnable scalar `bin_score`: (N3+1, N2+1)."""
-    n3d, n2d = distances.shape
-    rows = torch.cat([distances, bin_score.expand(n3d, 1)], dim=1)
-    last = torch.cat([bin_score.expand(1, n2d), bin_score.expand(1, 1)], dim=1)
-    return torch.cat([rows, last], dim=0)
+    *batch, n3d, n2d = distances.shape
+    rows = torch.cat([distances, bin_score.expand(*batch, n3d, 1)], dim=-1)
+    return torch.cat([rows, bin_score.expand(*batch, 1, n2d + 1)], dim=-2)
 
 
 def marginals(n3d: int, n2d: int, like: torch.Tensor):
@@ -42,7 +45,7 @@ def log_sinkhorn(cost: torch.Tensor, mu: torch.Tensor, nu: torch.Tensor, eps: fl
     With M(u, v)_ij = (-C_ij + u_i + v_j) / eps, alternates
         u <- eps * (log(mu + 1e-8) - logsumexp_j M(u, v)) + u
         v <- eps * (log(nu + 1e-8) - logsumexp_i M(u, v)) + v
-    for at most `max_iters` iterations, stopping early once ||u - u_prev||_2 < 1e-6.
+    for at most `max_iters` iterations, stopping early once ||u - u_prev||_2 < 1e-6 (in every problem of a batch).
     Returns (log P, iterations run) with log P = M(u, v), the log of the transport plan.
     """
 
@@ -57,7 +60,7 @@ def log_sinkhorn(cost: torch.Tensor, mu: torch.Tensor, nu: torch.Tensor, eps: fl
         u = eps * (log_mu - torch.logsumexp(modified_cost(u, v), dim=-1)) + u
         v = eps * (log_nu - torch.logsumexp(modified_cost(u, v).transpose(-2, -1), dim=-1)) + v
         iterations += 1
-        if (u - u_prev).norm() < SINKHORN_STOP_THRESHOLD:
+        if (u - u_prev).norm(dim=-1).max() < SINKHORN_STOP_THRESHOLD:
             break
     return modified_cost(u, v), iterations
 
@@ -69,30 +72,37 @@ def scaling_sinkhorn(cost: torch.Tensor, mu: torch.Tensor, nu: torch.Tensor, eps
     a <- (mu + 1e-8) / (K b), b <- (nu + 1e-8) / (K^T a), and log P = log a_i + log K_ij + log b_j; the stop test
     eps * ||log a - log a_prev|| < 1e-6 is the log-domain one. Two matrix-vector products per iteration instead of
     two logsumexp passes make forward and backward several times cheaper; used for training.
-    Requires (max C - min C) / eps <= MAX_EXP_DOMAIN_RANGE so that K has no underflow.
+    Requires (max C - min C) / eps <= MAX_EXP_DOMAIN_RANGE so that K has no underflow (s is per problem).
     """
-    shift = cost.detach().min()
+    shift = cost.detach().amin(dim=(-2, -1), keepdim=True)
     log_k = (cost - shift) / -eps
     k = log_k.exp()
     row_mass, col_mass = mu + 1e-8, nu + 1e-8
-    b = torch.ones_like(nu)
-    log_a_prev = torch.full_like(mu, -shift.item() / eps)
+    batch = cost.shape[:-2]
+    b = nu.new_ones(batch + (nu.shape[-1], 1))
+    log_a_prev = (shift.squeeze(-1) / -eps).expand(batch + mu.shape[-1:])
     iterations = 0
     for _ in range(max_iters):
-        a = row_mass / (k @ b)
-        b = col_mass / (k.t() @ a)
+        a = row_mass / (k @ b).squeeze(-1)
+        b = (col_mass / (k.transpose(-2, -1) @ a.unsqueeze(-1)).squeeze(-1)).unsqueeze(-1)
         iterations += 1
         log_a = a.log()
-        if (eps * (log_a - log_a_prev)).norm() < SINKHORN_STOP_THRESHOLD:
+        if (eps * (log_a - log_a_prev)).norm(dim=-1).max() < SINKHORN_STOP_THRESHOLD:
             break
         log_a_prev = log_a
-    return log_a.unsqueeze(1) + log_k + b.log().unsqueeze(0), iterations
+    return log_a.unsqueeze(-1) + log_k + b.log().transpose(-2, -1), iterations
+
+
+def largest_spread(cost: torch.Tensor) -> torch.Tensor:
+    """max C - min C, the largest over the problems of a batch."""
+    detached = cost.detach()
+    return (detached.amax(dim=(-2, -1)) - detached.amin(dim=(-2, -1))).max()
 
 
 def transport(cost: torch.Tensor, mu: torch.Tensor, nu: torch.Tensor, eps: float, max_iters: int):
     """(log P, iterations): the reference's log-domain arithmetic for inference (no autograd), the equivalent
     exp-domain iteration when gradients are recorded and the cost range allows it (training speed)."""
-    if torch.is_grad_enabled() and float(cost.detach().max() - cost.detach().min()) / eps <= MAX_EXP_DOMAIN_RANGE:
+    if torch.is_grad_enabled() and float(largest_spread(cost)) / eps <= MAX_EXP_DOMAIN_RANGE:
         return scaling_sinkhorn(cost, mu, nu, eps, max_iters)
     return log_sinkhorn(cost, mu, nu, eps, max_iters)
 

@@ -4,7 +4,9 @@
         --epochs 20 --batch 16 --max-points 256 --workers 2 [--feature-dim 64 --encoder-blocks 6] [--resume]
 
 One forward pass per sample (InstanceNorm statistics are per set and set sizes differ); gradients of `--batch`
-samples are accumulated (mean loss) before each Adam step, optionally shared among `--workers` processes. Every
+samples are accumulated (mean loss) before each Adam step, optionally shared among `--workers` processes.
+`--batched` (for the GPU) instead runs one forward pass per batch: samples are grouped by size and cropped to the
+smallest set sizes of their batch (see `equal_size_batches`). Every
 epoch draws a fresh subsample of every training sample (outlier rate and point budget, see dataset.py) from a
 generator seeded by (seed, epoch, sample), so a run resumed from a checkpoint repeats exactly what the uninterrupted
 run would have done. `--init MODEL` starts a new run (fresh optimizer, epoch 0) from an export's weights: a
@@ -30,7 +32,7 @@ import torch
 
 from .config import ModelConfig
 from .dataset import load_samples, subsample
-from .evaluate import Totals, assess
+from .evaluate import Totals, assess, assess_batch
 from .export import load_export, save_export
 from .model import GoMatch
 from .parallel import Group, launch
@@ -40,7 +42,7 @@ CHECKPOINT = "checkpoint.pt"
 # Options that must not change when a run is resumed (they define what the run computes).
 FIXED_ON_RESUME = (
     "train", "val", "seed", "batch", "lr", "max_points", "min_points", "outlier_rate", "val_max_points",
-    "feature_dim", "encoder_blocks", "classifier_blocks", "init",
+    "feature_dim", "encoder_blocks", "classifier_blocks", "init", "batched",
 )  # fmt: skip
 NO_OUTLIER_CONTROL = (0.0, 1.0)  # outlier-rate range that keeps every point (the paper's tests)
 VAL_MIN_POINTS = 10  # reference: evaluation counts a sample as failed below 10 points; no other filtering
@@ -62,6 +64,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--val-max-points", type=int, default=None, help="validation point budget (default --max-points)")
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads per worker")
     p.add_argument("--workers", type=int, default=1, help="data-parallel processes sharing each batch")
+    p.add_argument("--batched", action="store_true",
+                   help="one forward pass per batch of equal-size samples (cropped to the batch's smallest sets)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--feature-dim", type=int, default=ModelConfig.feature_dim)
     p.add_argument("--encoder-blocks", type=int, default=ModelConfig.encoder_blocks)
@@ -98,6 +102,11 @@ def to_tensors(prepared, device):
     )
 
 
+def stacked_tensors(samples: list, device):
+    """(B, N2, 2), (B, N3, 2), (B, N2) tensors of equal-size subsampled samples."""
+    return to_tensors(tuple(np.stack(parts) for parts in zip(*samples)), device)
+
+
 def epoch_batches(samples: list, epoch: int, args) -> list:
     """This epoch's batches of subsampled training samples, a pure function of (seed, epoch)."""
     order = np.random.default_rng([args.seed, epoch]).permutation(len(samples))
@@ -107,7 +116,33 @@ def epoch_batches(samples: list, epoch: int, args) -> list:
         drawn = subsample(samples[index], rng, tuple(args.outlier_rate), args.max_points, args.min_points)
         if drawn is not None:
             prepared.append(drawn)
+    if args.batched:
+        return equal_size_batches(prepared, args.batch, np.random.default_rng([args.seed, epoch, len(samples)]))
     return [prepared[i : i + args.batch] for i in range(0, len(prepared), args.batch)]
+
+
+def equal_size_batches(prepared: list, batch: int, rng: np.random.Generator) -> list:
+    """Batches whose samples have equal set sizes, for one batched forward pass.
+
+    Samples are sorted by (N2, N3) (stably, so equal sizes keep their random order) and cut into batches; each
+    sample is cropped to the smallest N2 and N3 of its batch. Both sets are randomly permuted (`subsample`), so a
+    crop keeps a random subset; a keypoint whose 3D point is cropped becomes unmatched. Batches come in random order.
+    """
+    order = sorted(range(len(prepared)), key=lambda i: (len(prepared[i][0]), len(prepared[i][1])))
+    batches = []
+    for start in range(0, len(order), batch):
+        members = [prepared[i] for i in order[start : start + batch]]
+        n2d, n3d = min(len(m[0]) for m in members), min(len(m[1]) for m in members)
+        batches.append([crop(m, n2d, n3d) for m in members])
+    return [batches[i] for i in rng.permutation(len(batches))]
+
+
+def crop(prepared, n2d: int, n3d: int):
+    """The first n2d keypoints and n3d 3D points of a subsampled sample, with the matches that remain."""
+    pts2d, pts3d, match = prepared
+    match = match[:n2d].copy()
+    match[match >= n3d] = -1
+    return pts2d[:n2d], pts3d[:n3d], match
 
 
 def validation_set(
@@ -226,17 +261,25 @@ class Run:
         restore_rng_states(state["rng"])
 
     def train_batch(self, batch: list, group: Group) -> Totals:
-        """One Adam step on the mean loss of `batch`; this process computes its share. Returns its totals."""
+        """One Adam step on the mean loss of `batch`; this process computes its share (per sample, or in one
+        batched pass with --batched). Returns its totals."""
         self.optimizer.zero_grad(set_to_none=True)
         totals = Totals()
-        for prepared in group.share(batch):
-            pts2d, pts3d, match = to_tensors(prepared, self.device)
-            outcome = assess(self.model(pts2d, pts3d), match, self.model.config.match_threshold)
-            (outcome.loss / len(batch)).backward()
-            totals.add(outcome)
+        share = group.share(batch)
+        for chunk in [share] if self.args.batched and share else [[prepared] for prepared in share]:
+            outcomes = self.assess_chunk(chunk)
+            (sum(outcome.loss for outcome in outcomes) / len(batch)).backward()
+            for outcome in outcomes:
+                totals.add(outcome)
         group.sum_gradients(self.model.parameters())
         self.optimizer.step()
         return totals
+
+    def assess_chunk(self, chunk: list) -> list:
+        """Outcomes of one forward pass over equal-size samples."""
+        pts2d, pts3d, match = stacked_tensors(chunk, self.device)
+        threshold = self.model.config.match_threshold
+        return assess_batch(self.model.forward_batch(pts2d, pts3d), match, threshold)
 
 
 def train(args, group: Group = Group()) -> dict:

@@ -10,7 +10,7 @@ from safetensors import safe_open
 from gomatch_train import train, validate
 from gomatch_train.config import ModelConfig
 from gomatch_train.dataset import Sample, load_samples
-from gomatch_train.evaluate import assess
+from gomatch_train.evaluate import assess, assess_batch
 from gomatch_train.export import load_export
 from gomatch_train.model import GoMatch
 from gomatch_train.synthetic import random_sample
@@ -118,3 +118,69 @@ def test_validation_set_selects_a_scene_and_controls_the_outlier_rate():
         inliers = int((match >= 0).sum())
         assert len(pts2d) - inliers == inliers and len(pts3d) - inliers == inliers
     assert any(len(p[0]) > 2 * int((p[2] >= 0).sum()) for p in natural), "no sample has more outliers than inliers"
+
+
+def test_batched_forward_matches_the_per_sample_forward():
+    """--batched training: one pass over equal-size samples gives each sample's plan, matches, loss and gradient."""
+    torch.manual_seed(1)
+    rng = np.random.default_rng(5)
+    samples = [Sample(*random_sample(rng, 200, 90, 60), "s") for _ in range(3)]
+    drawn = [train.subsample(s, np.random.default_rng(i), (0.5, 0.5), 64, 10) for i, s in enumerate(samples)]
+    n2d, n3d = min(len(d[0]) for d in drawn), min(len(d[1]) for d in drawn)
+    chunk = [train.crop(d, n2d, n3d) for d in drawn]
+    model = GoMatch(ModelConfig(feature_dim=32, encoder_blocks=2, classifier_blocks=1))
+    pts2d, pts3d, match = train.stacked_tensors(chunk, "cpu")
+
+    batched = model.forward_batch(pts2d, pts3d)
+    batched_outcomes = assess_batch(batched, match, 0.5)
+    sum(o.loss for o in batched_outcomes).backward()
+    batched_grads = [p.grad.clone() for p in model.parameters()]
+    model.zero_grad()
+    singles = [model(pts2d[i], pts3d[i]) for i in range(len(chunk))]
+    single_outcomes = [assess(r, m, 0.5) for r, m in zip(singles, match)]
+    sum(o.loss for o in single_outcomes).backward()
+
+    for i, s in enumerate(singles):
+        valid = batched.valid[i]
+        torch.testing.assert_close(batched.log_plan[i], s.log_plan, atol=1e-4, rtol=1e-4)
+        assert torch.equal(batched.i3d[i][valid], s.i3d) and torch.equal(batched.i2d[i][valid], s.i2d)
+        torch.testing.assert_close(batched.cls_logits[i][valid], s.cls_logits, atol=1e-4, rtol=1e-4)
+    assert not batched.valid.all(), "no padding exercised"
+    for b, s in zip(batched_outcomes, single_outcomes):
+        torch.testing.assert_close(b.loss, s.loss, atol=1e-5, rtol=1e-5)
+        assert (b.proposed, b.proposed_correct, b.gt_matches, b.kept) == (s.proposed, s.proposed_correct, s.gt_matches, s.kept)
+    for g, p in zip(batched_grads, model.parameters()):
+        torch.testing.assert_close(g, p.grad, atol=1e-4, rtol=1e-3)
+
+
+def test_equal_size_batches_crop_to_the_smallest_sets_and_keep_the_matches():
+    rng = np.random.default_rng(8)
+    sizes = rng.integers([80, 40], [300, 80], size=(20, 2))
+    samples = [Sample(*random_sample(rng, int(n3d), int(detected), 40), "s") for n3d, detected in sizes]
+    prepared = [train.subsample(s, np.random.default_rng(i), (0.0, 1.0), 0, 10) for i, s in enumerate(samples)]
+    batches = train.equal_size_batches(prepared, 4, np.random.default_rng(0))
+    assert sorted(len(b) for b in batches) == [4] * 5
+    originals = {p[0].tobytes()[:64]: p for p in prepared}
+    for batch in batches:
+        assert len({(len(p[0]), len(p[1])) for p in batch}) == 1, "sizes differ within a batch"
+        for pts2d, pts3d, match in batch:
+            full2d, full3d, full_match = originals[pts2d.tobytes()[:64]]
+            assert np.array_equal(pts2d, full2d[: len(pts2d)]) and np.array_equal(pts3d, full3d[: len(pts3d)])
+            kept = full_match[: len(pts2d)]
+            assert np.array_equal(match, np.where(kept < len(pts3d), kept, -1))
+    for part in (0, 1):
+        assert sum(len(p[part]) for b in batches for p in b) < sum(len(p[part]) for p in prepared), "nothing cropped"
+    again = train.equal_size_batches(prepared, 4, np.random.default_rng(0))
+    assert all(np.array_equal(a[0], b[0]) for x, y in zip(batches, again) for a, b in zip(x, y))
+
+
+def test_batched_cli_trains_and_resumes_exactly(data, tmp_path, capsys):
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    train.main(cli(data, straight, "--batched"))
+    assert "epoch 1 validation: loss" in capsys.readouterr().out
+    train.main(cli(data, resumed, "--batched", "--max-steps", "2"))
+    train.main(cli(data, resumed, "--batched", "--resume"))
+    a, b = exported(straight / "last.safetensors"), exported(resumed / "last.safetensors")
+    assert all(torch.equal(a[k], b[k]) for k in a), "resumed batched run diverged from the uninterrupted run"
+    with pytest.raises(SystemExit, match="--batched"):
+        train.main(cli(data, resumed, "--resume"))
