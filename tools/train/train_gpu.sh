@@ -1,23 +1,26 @@
 #!/usr/bin/env bash
-# A short training session on one GPU: writes the training data, then trains two models side by side on the GPU
-# with --batched, each for MINUTES of wall time, and copies their exports, histories and logs to OUT.
+# A short training session on one GPU: writes the training data, then trains one or more models side by side on
+# the GPU with --batched, each for MINUTES of wall time, and copies their exports, histories and logs to OUT
+# (every 20 s, so a session cut short still leaves its last checkpointed exports).
 #
-#   tools/train/train_gpu.sh GOMATCH_SIM DATA OUT MINUTES
+#   tools/train/train_gpu.sh GOMATCH_SIM DATA OUT MINUTES RUN...
 #
 # GOMATCH_SIM: a built `gomatch-sim`; DATA: the ../shared/data folder; OUT: where results go.
-# Runs (both at most 1024 points per set, batch 32, Adam 1e-3, outlier rate 0.5):
-#   paper  the paper's configuration (feature width 128, 12 encoder blocks, 4 classifier blocks), from scratch
-#   m64    the shipped configuration (64, 6, 4), fine-tuned from models/gomatch.safetensors
-# Training data: the real training scenes plus 4 x 30 synthetic scenes (seeds 0, 2, 3, 4; seed 1 is the
-# firmware query's), each file written by its own process; validation: colmap/mouse and colmap/sceaux.
+# RUN: NAME:INIT:WIDTH:ENCODER_BLOCKS:CLASSIFIER_BLOCKS; INIT is an export to fine-tune (path relative to the
+# repository root) or empty for a new model. Example, the paper's configuration from scratch and the shipped one
+# fine-tuned:   paper::128:12:4 m64:models/gomatch.safetensors:64:6:4
+# Every run: at most 1024 points per set, batch 32, Adam 1e-3, outlier rate 0.5. Training data: the real training
+# scenes plus 4 x 30 synthetic scenes (seeds 0, 2, 3, 4; seed 1 is the firmware query's), each file written by
+# its own process; validation: colmap/mouse and colmap/sceaux. DEVICE=cpu tries it on a machine without a GPU.
 set -euo pipefail
 sim=$(realpath "$1"); data=$(realpath "$2"); out=$(realpath -m "$3"); minutes=$4
+shift 4
 here="$(cd "$(dirname "$0")" && pwd)"
 repo="$(cd "$here/../.." && pwd)"
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
 mkdir -p "$out"
-py=${PYTHON:-python3}  # DEVICE=cpu for a try on a machine without a GPU
+py=${PYTHON:-python3}
 
 start=$(date +%s)
 "$sim" dataset --output "$work/real.safetensors" \
@@ -38,30 +41,36 @@ common=(--train "$work"/real.safetensors "$work"/synthetic-*.safetensors --val "
     --device "${DEVICE:-cuda}" --batched --batch 32 --lr 1e-3 --max-points 1024 --epochs 100 --threads 2
     --max-minutes "$minutes" --ckpt-minutes 2 --log-every 50)
 cd "$here"
-"$py" -m gomatch_train.train "${common[@]}" --out "$work/paper" \
-    --feature-dim 128 --encoder-blocks 12 --classifier-blocks 4 >"$work/paper.log" 2>&1 &
-paper=$!
-"$py" -m gomatch_train.train "${common[@]}" --out "$work/m64" --init "$repo/models/gomatch.safetensors" \
-    --feature-dim 64 --encoder-blocks 6 --classifier-blocks 4 >"$work/m64.log" 2>&1 &
-m64=$!
-collect() {  # the latest exports, histories and logs of both runs into OUT
-    for run in paper m64; do
-        cp "$work/$run.log" "$out/$run.log"
+names=() pids=()
+for spec in "$@"; do
+    IFS=: read -r name init width encoder classifier <<<"$spec"
+    options=(--feature-dim "$width" --encoder-blocks "$encoder" --classifier-blocks "$classifier")
+    if [ -n "$init" ]; then options+=(--init "$repo/$init"); fi
+    "$py" -m gomatch_train.train "${common[@]}" --out "$work/$name" "${options[@]}" >"$work/$name.log" 2>&1 &
+    names+=("$name") pids+=($!)
+done
+
+collect() {  # the latest exports, histories and logs of every run into OUT
+    for name in "${names[@]}"; do
+        cp "$work/$name.log" "$out/$name.log"
         for file in last.safetensors best.safetensors history.jsonl; do
-            if [ -f "$work/$run/$file" ]; then cp "$work/$run/$file" "$out/$run-$file"; fi
+            if [ -f "$work/$name/$file" ]; then cp "$work/$name/$file" "$out/$name-$file"; fi
         done
     done
 }
-while kill -0 $paper 2>/dev/null || kill -0 $m64 2>/dev/null; do
+running() {
+    for pid in "${pids[@]}"; do kill -0 "$pid" 2>/dev/null && return 0; done
+    return 1
+}
+while running; do
     sleep 20
     collect
 done
 status=0
-wait $paper || status=$?
-wait $m64 || status=$?
+for pid in "${pids[@]}"; do wait "$pid" || status=$?; done
 collect
-for run in paper m64; do
-    echo "== $run"; grep -E "model|validation|stopping|Error|error" "$work/$run.log" | tail -n 12
-    tail -n 2 "$work/$run.log"
+for name in "${names[@]}"; do
+    echo "== $name"; grep -E "model|validation|stopping|Error|error" "$work/$name.log" | tail -n 12
+    tail -n 2 "$work/$name.log"
 done
 exit $status

@@ -22,11 +22,8 @@ import time
 import numpy as np
 import torch
 
-import torch.nn.functional as F
-
 from .config import ModelConfig
 from .encoder import PointResNet
-from .layers import INSTANCE_NORM_EPS
 from .loss import classifier_labels, classifier_loss, match_loss
 from .model import GoMatch
 from .runtime import keep_freed_memory
@@ -68,28 +65,12 @@ def train_step(model: GoMatch, sample) -> None:
     loss.backward()
 
 
-def batched_encoder(encoder: PointResNet, points: torch.Tensor) -> torch.Tensor:
-    """The encoder on a (B, N, 2) batch of equal-sized sets, channel-major with per-set InstanceNorm."""
-
-    def linear(x, layer):
-        return torch.baddbmm(layer.bias[None, :, None], layer.matrix().expand(x.shape[0], -1, -1), x)
-
-    x = linear(points.transpose(1, 2).contiguous(), encoder.conv_in[0])
-    for i in range(encoder.blocks):
-        block = getattr(encoder, f"conv_{i}")
-        y = linear(x, block.preconv[0])
-        y = F.instance_norm(linear(y, block.conv1[0]), eps=INSTANCE_NORM_EPS)
-        y = F.instance_norm(linear(y, block.conv2[0]), eps=INSTANCE_NORM_EPS)
-        x = F.relu(y) + x
-    return x
-
-
 def batching_report(threads: int, repeats: int) -> None:
     torch.set_num_threads(threads)
     encoder = PointResNet(2, 128, 12)
     points = torch.rand(16, 256, 2)
     one_by_one = timed(lambda: [encoder(p).sum().backward() for p in points], repeats)
-    batched = timed(lambda: batched_encoder(encoder, points).sum().backward(), repeats)
+    batched = timed(lambda: encoder(points).sum().backward(), repeats)
     print(f"encoder (128 wide, 12 blocks) forward+backward of 16 samples x 256 points, {threads} thread(s):")
     for name, (fastest, median, cpu) in (("one sample at a time", one_by_one), ("one batched tensor  ", batched)):
         print(f"  {name}: wall fastest {fastest * 1e3:.0f} ms, median {median * 1e3:.0f} ms; CPU {cpu * 1e3:.0f} ms")

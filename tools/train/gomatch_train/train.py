@@ -107,8 +107,8 @@ def stacked_tensors(samples: list, device):
     return to_tensors(tuple(np.stack(parts) for parts in zip(*samples)), device)
 
 
-def epoch_batches(samples: list, epoch: int, args) -> list:
-    """This epoch's batches of subsampled training samples, a pure function of (seed, epoch)."""
+def epoch_samples(samples: list, epoch: int, args) -> list:
+    """This epoch's subsampled training samples in random order, a pure function of (seed, epoch)."""
     order = np.random.default_rng([args.seed, epoch]).permutation(len(samples))
     prepared = []
     for index in order:
@@ -116,9 +116,19 @@ def epoch_batches(samples: list, epoch: int, args) -> list:
         drawn = subsample(samples[index], rng, tuple(args.outlier_rate), args.max_points, args.min_points)
         if drawn is not None:
             prepared.append(drawn)
+    return prepared
+
+
+def epoch_batches(prepared: list, epoch: int, args) -> list:
+    """The batches of one epoch's samples (`epoch_samples`), also a pure function of (seed, epoch)."""
     if args.batched:
-        return equal_size_batches(prepared, args.batch, np.random.default_rng([args.seed, epoch, len(samples)]))
+        return equal_size_batches(prepared, args.batch, np.random.default_rng([args.seed, epoch, len(prepared)]))
     return [prepared[i : i + args.batch] for i in range(0, len(prepared), args.batch)]
+
+
+def point_count(prepared: list) -> int:
+    """Keypoints plus 3D points of subsampled samples."""
+    return sum(len(pts2d) + len(pts3d) for pts2d, pts3d, _ in prepared)
 
 
 def equal_size_batches(prepared: list, batch: int, rng: np.random.Generator) -> list:
@@ -313,11 +323,14 @@ def train(args, group: Group = Group()) -> dict:
         return summary
     start = last_ckpt = time.monotonic()
     while run.epoch < args.epochs:
-        batches = epoch_batches(samples, run.epoch, args)
+        drawn = epoch_samples(samples, run.epoch, args)
+        batches = epoch_batches(drawn, run.epoch, args)
         if not batches:
             raise SystemExit(f"no training sample has >= {args.min_points} points after subsampling")
         if run.next_batch == 0:
-            log(f"epoch {run.epoch}: {sum(len(b) for b in batches)} samples in {len(batches)} batches")
+            kept = sum(point_count(batch) for batch in batches) / point_count(drawn)
+            log(f"epoch {run.epoch}: {len(drawn)} samples in {len(batches)} batches"
+                f"{f', {100 * kept:.2f} % of their points kept by the equal-size crops' if args.batched else ''}")  # fmt: skip
         window, window_start = Totals(), time.monotonic()
         while run.next_batch < len(batches):
             window.merge(run.train_batch(batches[run.next_batch], group))

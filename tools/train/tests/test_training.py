@@ -177,7 +177,8 @@ def test_equal_size_batches_crop_to_the_smallest_sets_and_keep_the_matches():
 def test_batched_cli_trains_and_resumes_exactly(data, tmp_path, capsys):
     straight, resumed = tmp_path / "straight", tmp_path / "resumed"
     train.main(cli(data, straight, "--batched"))
-    assert "epoch 1 validation: loss" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "epoch 1 validation: loss" in out and "% of their points kept by the equal-size crops" in out
     train.main(cli(data, resumed, "--batched", "--max-steps", "2"))
     train.main(cli(data, resumed, "--batched", "--resume"))
     a, b = exported(straight / "last.safetensors"), exported(resumed / "last.safetensors")
