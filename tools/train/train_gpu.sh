@@ -11,7 +11,8 @@
 # fine-tuned:   paper::128:12:4 m64:models/gomatch.safetensors:64:6:4
 # Every run: at most 1024 points per set, batch 32, Adam 1e-3, outlier rate 0.5. Training data: the real training
 # scenes plus 4 x 30 synthetic scenes (seeds 0, 2, 3, 4; seed 1 is the firmware query's), each file written by
-# its own process; validation: colmap/mouse and colmap/sceaux. DEVICE=cpu tries it on a machine without a GPU.
+# its own process; validation: colmap/mouse and colmap/sceaux. DEVICE=cpu tries it on a machine without a GPU,
+# SYNTHETIC_SCENES=N writes N instead of 30 scenes per synthetic seed (the test's short version).
 set -euo pipefail
 sim=$(realpath "$1"); data=$(realpath "$2"); out=$(realpath -m "$3"); minutes=$4
 shift 4
@@ -28,8 +29,8 @@ start=$(date +%s)
     --bal "$data/bal/problem-49-7776-pre.txt" --bal "$data/bal/problem-21-11315-pre.txt" \
     --bundler "$data/bundler/kermit/bundle.out" >"$work/gen-real.log" &
 for seed in 0 2 3 4; do
-    "$sim" dataset --output "$work/synthetic-$seed.safetensors" --synthetic 30 --synthetic-seed "$seed" \
-        >"$work/gen-$seed.log" &
+    "$sim" dataset --output "$work/synthetic-$seed.safetensors" --synthetic "${SYNTHETIC_SCENES:-30}" \
+        --synthetic-seed "$seed" >"$work/gen-$seed.log" &
 done
 "$sim" dataset --output "$work/val.safetensors" --colmap "$data/colmap/mouse" --colmap "$data/colmap/sceaux" \
     >"$work/gen-val.log" &
