@@ -79,18 +79,23 @@ def scaling_sinkhorn(cost: torch.Tensor, mu: torch.Tensor, nu: torch.Tensor, eps
     k = log_k.exp()
     row_mass, col_mass = mu + 1e-8, nu + 1e-8
     batch = cost.shape[:-2]
-    b = nu.new_ones(batch + (nu.shape[-1], 1))
+    b = nu.new_ones(batch + nu.shape[-1:])
     log_a_prev = (shift.squeeze(-1) / -eps).expand(batch + mu.shape[-1:])
     iterations = 0
     for _ in range(max_iters):
-        a = row_mass / (k @ b).squeeze(-1)
-        b = (col_mass / (k.transpose(-2, -1) @ a.unsqueeze(-1)).squeeze(-1)).unsqueeze(-1)
+        a = row_mass / matvec(k, b)
+        b = col_mass / matvec(k.transpose(-2, -1), a)
         iterations += 1
         log_a = a.log()
         if (eps * (log_a - log_a_prev)).norm(dim=-1).max() < SINKHORN_STOP_THRESHOLD:
             break
         log_a_prev = log_a
-    return log_a.unsqueeze(-1) + log_k + b.log().transpose(-2, -1), iterations
+    return log_a.unsqueeze(-1) + log_k + b.log().unsqueeze(-2), iterations
+
+
+def matvec(matrix: torch.Tensor, vector: torch.Tensor) -> torch.Tensor:
+    """matrix @ vector for one (R, C) matrix and (C,) vector or a batch (B, R, C), (B, C)."""
+    return (matrix @ vector.unsqueeze(-1)).squeeze(-1)
 
 
 def largest_spread(cost: torch.Tensor) -> torch.Tensor:

@@ -275,8 +275,7 @@ class Run:
         batched pass with --batched). Returns its totals."""
         self.optimizer.zero_grad(set_to_none=True)
         totals = Totals()
-        share = group.share(batch)
-        for chunk in [share] if self.args.batched and share else [[prepared] for prepared in share]:
+        for chunk in self.forward_chunks(group.share(batch)):
             outcomes = self.assess_chunk(chunk)
             (sum(outcome.loss for outcome in outcomes) / len(batch)).backward()
             for outcome in outcomes:
@@ -284,6 +283,12 @@ class Run:
         group.sum_gradients(self.model.parameters())
         self.optimizer.step()
         return totals
+
+    def forward_chunks(self, share: list) -> list:
+        """This process's share of a batch, cut into the sample groups of one forward pass each."""
+        if self.args.batched:
+            return [share] if share else []
+        return [[prepared] for prepared in share]
 
     def assess_chunk(self, chunk: list) -> list:
         """Outcomes of one forward pass over equal-size samples."""
@@ -328,9 +333,11 @@ def train(args, group: Group = Group()) -> dict:
         if not batches:
             raise SystemExit(f"no training sample has >= {args.min_points} points after subsampling")
         if run.next_batch == 0:
-            kept = sum(point_count(batch) for batch in batches) / point_count(drawn)
-            log(f"epoch {run.epoch}: {len(drawn)} samples in {len(batches)} batches"
-                f"{f', {100 * kept:.2f} % of their points kept by the equal-size crops' if args.batched else ''}")  # fmt: skip
+            crops = ""
+            if args.batched:
+                kept = sum(point_count(batch) for batch in batches) / point_count(drawn)
+                crops = f", {100 * kept:.2f} % of their points kept by the equal-size crops"
+            log(f"epoch {run.epoch}: {len(drawn)} samples in {len(batches)} batches{crops}")
         window, window_start = Totals(), time.monotonic()
         while run.next_batch < len(batches):
             window.merge(run.train_batch(batches[run.next_batch], group))
