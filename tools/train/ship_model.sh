@@ -2,16 +2,20 @@
 # Ships a trained checkpoint into models/ and measures it the way the model card reports it.
 #
 #   tools/train/ship_model.sh RUN/last.safetensors [QUERIES]
+#   SEEDS="1 2 3" (default): further protocol seeds evaluated beside seed 0 (RANSAC and keypoint
+#   draws change with the seed; their mean is steadier than one seed on 56 queries)
 #
 # 1. copies the f32 export to models/gomatch.safetensors;
 # 2. converts it with `gomatch-tools convert` to models/gomatch-{f32,f16,int8}.bin;
 # 3. runs `gomatch-sim eval --k 10` (the paper's protocol, Sinkhorn cost in f16 as on the
 #    device) on every validation scene of ../shared/data for each precision, writing
-#    models/eval/<scene>-<precision>.json and .png (QUERIES: queries per scene, default all);
-# 4. writes models/SHA256SUMS and prints the model card's table (tools/train/eval_table.py).
+#    models/eval/<scene>-<precision>.json and .png (QUERIES: queries per scene, default all),
+#    and with each seed S of SEEDS models/eval/<scene>-<precision>-seed<S>.json;
+# 4. writes models/SHA256SUMS and prints the model card's tables (tools/train/eval_table.py).
 set -euo pipefail
 checkpoint=$(realpath "$1")
 queries=${2:-500}
+seeds=${SEEDS-1 2 3}
 repo=$(cd "$(dirname "$0")/../.." && pwd)
 cd "$repo"
 data="$repo/../shared/data"
@@ -31,6 +35,11 @@ for scene in mouse sceaux; do
     "$bin/gomatch-sim" eval --colmap "$data/colmap/$scene" --k 10 --queries "$queries" \
       --model "models/gomatch-$p.bin" --threads "$threads" \
       --json "models/eval/$scene-$p.json" --plot "models/eval/$scene-$p.png"
+    for seed in $seeds; do
+      "$bin/gomatch-sim" eval --colmap "$data/colmap/$scene" --k 10 --queries "$queries" \
+        --model "models/gomatch-$p.bin" --threads "$threads" --seed "$seed" \
+        --json "models/eval/$scene-$p-seed$seed.json"
+    done
   done
 done
 (cd models && sha256sum gomatch.safetensors gomatch-f32.bin gomatch-f16.bin gomatch-int8.bin > SHA256SUMS)

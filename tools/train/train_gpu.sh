@@ -8,7 +8,7 @@
 # GOMATCH_SIM: a built `gomatch-sim`; DATA: the ../shared/data folder; OUT: where results go.
 # RUN: NAME:INIT:WIDTH:ENCODER_BLOCKS:CLASSIFIER_BLOCKS; INIT is an export to fine-tune (path relative to the
 # repository root) or empty for a new model. Example, the paper's configuration from scratch and the shipped one
-# fine-tuned:   paper::128:12:4 m64:models/gomatch.safetensors:64:6:4
+# fine-tuned:   paper::128:12:4 paper3:models/gomatch.safetensors:128:12:4
 # Every run: at most 1024 points per set, batch 32, Adam 1e-3, outlier rate 0.5. Training data: the real training
 # scenes plus 4 x 30 synthetic scenes (seeds 0, 2, 3, 4; seed 1 is the firmware query's), each file written by
 # its own process; validation: colmap/mouse and colmap/sceaux. DEVICE=cpu tries it on a machine without a GPU,
