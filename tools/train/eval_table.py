@@ -51,27 +51,23 @@ def seed_row(scene: str, precision: str, reports: list[dict]) -> str:
 
 def main(folder: Path) -> None:
     scenes = [path.name[: -len("-f32.json")] for path in sorted(folder.glob("*-f32.json"))]
+    reports = {(scene, p): seed_reports(folder, scene, p) for scene in scenes for p in PRECISIONS}
+    reports = {key: found for key, found in reports.items() if found}
     print("| scene | weights | queries | failures | AUC @1/5/10 px | rotation q25/50/75 (deg) "
           "| mean inliers | ms per query |")
     print("|---|---|---|---|---|---|---|---|")
-    for scene in scenes:
-        for precision in PRECISIONS:
-            report_path = folder / f"{scene}-{precision}.json"
-            if report_path.exists():
-                print(row(json.loads(report_path.read_text()), precision))
-    if not any(folder.glob("*-seed*.json")):
+    for (_, precision), found in reports.items():
+        print(row(found[0], precision))
+    if all(len(found) == 1 for found in reports.values()):
         return
     print()
     print("| scene | weights | seeds | mean AUC @1/5/10 px | range over the seeds |")
     print("|---|---|---|---|---|")
-    for scene in scenes:
-        for precision in PRECISIONS:
-            reports = seed_reports(folder, scene, precision)
-            if reports:
-                print(seed_row(reports[0]["scene"], precision, reports))
+    for (_, precision), found in reports.items():
+        print(seed_row(found[0]["scene"], precision, found))
     print()
     for scene in scenes:
-        f32, int8 = seed_reports(folder, scene, "f32"), seed_reports(folder, scene, "int8")
+        f32, int8 = reports.get((scene, "f32")), reports.get((scene, "int8"))
         if f32 and int8:
             diff = " / ".join(f"{b - a:+.2f}" for a, b in zip(auc_means(f32), auc_means(int8)))
             print(f"{f32[0]['scene']}: int8 - f32, mean AUC @1/5/10 px: {diff}")
