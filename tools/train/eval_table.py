@@ -6,15 +6,21 @@ reads every DIR/<scene>-<precision>.json written by tools/train/ship_model.sh (p
 prints one row per scene and precision: queries, failures, reprojection AUC @1/5/10 px, rotation
 error quartiles, mean inliers and matching time per query. When DIR also holds reports of further
 seeds (<scene>-<precision>-seed<S>.json), a second table gives each AUC's mean over all seeds with
-its range, and the int8 - f32 difference of the means. Standard library only.
+its range, and the f16 - f32 and int8 - f32 differences of the means with a 95 % paired bootstrap
+interval over the queries (the same resampled queries for both precisions and every seed), which says
+how far the difference could move with other queries of the same scene. Standard library only.
 """
 
 import json
+import random
 import sys
 from pathlib import Path
 
 PRECISIONS = ["f32", "f16", "int8"]
 AUC_KEYS = ("auc_1px", "auc_5px", "auc_10px")
+AUC_THRESHOLDS_PX = (1.0, 5.0, 10.0)
+BOOTSTRAP_RESAMPLES = 2000
+BOOTSTRAP_SEED = 0
 
 
 def row(report: dict, precision: str) -> str:
@@ -38,6 +44,58 @@ def seed_reports(folder: Path, scene: str, precision: str) -> list[dict]:
 def auc_means(reports: list[dict]) -> list[float]:
     """Mean of each AUC threshold over the reports."""
     return [sum(r[k] for r in reports) / len(reports) for k in AUC_KEYS]
+
+
+def error_auc(errors: list[float], threshold: float) -> float:
+    """Area under the recall curve of the errors up to `threshold`, over the threshold, in percent: the
+    trapezoidal rule of `error_auc` in host-sim/src/protocol.rs (a failed query has an infinite error)."""
+    area, last_error, last_recall = 0.0, 0.0, 0.0
+    for i, error in enumerate(sorted(errors)):
+        if error >= threshold:
+            break
+        recall = (i + 1) / len(errors)
+        area += (error - last_error) * (recall + last_recall) * 0.5
+        last_error, last_recall = error, recall
+    area += (threshold - last_error) * last_recall
+    return 100.0 * area / threshold
+
+
+def query_errors(report: dict) -> dict[int, float]:
+    """Reprojection error per query image id; infinite for a failed query."""
+    return {
+        q["image_id"]: q["reprojection_px"] if q["reprojection_px"] is not None else float("inf")
+        for q in report["per_query"]
+    }
+
+
+def mean_auc_difference(base: list[dict], other: list[dict], queries: list[int]) -> list[float]:
+    """Mean AUC over the seeds of `other` minus that of `base`, on the given query ids (repeats allowed)."""
+    def mean_aucs(reports: list[dict]) -> list[float]:
+        errors = [query_errors(r) for r in reports]
+        return [sum(error_auc([e[q] for q in queries], t) for e in errors) / len(errors) for t in AUC_THRESHOLDS_PX]
+
+    return [b - a for a, b in zip(mean_aucs(base), mean_aucs(other))]
+
+
+def bootstrap_interval(base: list[dict], other: list[dict]) -> list[tuple[float, float]]:
+    """95 % percentile interval of `mean_auc_difference` when the queries are resampled with replacement
+    (seeded, so the table is reproducible)."""
+    queries = sorted(query_errors(base[0]))
+    rng = random.Random(BOOTSTRAP_SEED)
+    samples = [
+        mean_auc_difference(base, other, rng.choices(queries, k=len(queries))) for _ in range(BOOTSTRAP_RESAMPLES)
+    ]
+    low, high = int(0.025 * BOOTSTRAP_RESAMPLES), int(0.975 * BOOTSTRAP_RESAMPLES) - 1
+    return [(sorted(column)[low], sorted(column)[high]) for column in zip(*samples)]
+
+
+def difference_line(base: list[dict], other: list[dict], precision: str) -> str:
+    diff = " / ".join(f"{b - a:+.2f}" for a, b in zip(auc_means(base), auc_means(other)))
+    line = f"{base[0]['scene']}: {precision} - f32, mean AUC @1/5/10 px: {diff}"
+    if all("per_query" in r for r in base + other):
+        spans = " / ".join(f"[{lo:+.2f}, {hi:+.2f}]" for lo, hi in bootstrap_interval(base, other))
+        line += f" (95 % bootstrap interval over the queries: {spans})"
+    return line
 
 
 def seed_row(scene: str, precision: str, reports: list[dict]) -> str:
@@ -67,10 +125,10 @@ def main(folder: Path) -> None:
         print(seed_row(found[0]["scene"], precision, found))
     print()
     for scene in scenes:
-        f32, int8 = reports.get((scene, "f32")), reports.get((scene, "int8"))
-        if f32 and int8:
-            diff = " / ".join(f"{b - a:+.2f}" for a, b in zip(auc_means(f32), auc_means(int8)))
-            print(f"{f32[0]['scene']}: int8 - f32, mean AUC @1/5/10 px: {diff}")
+        for precision in ("f16", "int8"):
+            f32, other = reports.get((scene, "f32")), reports.get((scene, precision))
+            if f32 and other:
+                print(difference_line(f32, other, precision))
 
 
 if __name__ == "__main__":

@@ -40,3 +40,36 @@ def test_without_further_seeds_only_the_seed_zero_table_is_printed(tmp_path, cap
     eval_table.main(tmp_path)
     out = capsys.readouterr().out
     assert "10.00 / 20.00 / 30.00" in out and "mean AUC" not in out
+
+
+def test_error_auc_follows_the_rust_trapezoids():
+    assert abs(eval_table.error_auc([0.5], 1.0) - 75.0) < 1e-9
+    assert abs(eval_table.error_auc([0.5, float("inf")], 1.0) - 37.5) < 1e-9
+    assert abs(eval_table.error_auc([4.0, 0.0, 2.0], 5.0) - 100.0 * 11.0 / 15.0) < 1e-9
+    assert eval_table.error_auc([1.0], 1.0) == 0.0
+
+
+def with_queries(seed: int, errors: list) -> dict:
+    aucs = tuple(eval_table.error_auc([e if e is not None else float("inf") for e in errors], t) for t in (1, 5, 10))
+    content = report("colmap/s", seed, aucs)
+    content["per_query"] = [{"image_id": i, "reprojection_px": e} for i, e in enumerate(errors)]
+    return content
+
+
+def test_bootstrap_interval_brackets_the_difference_and_is_reproducible(tmp_path, capsys):
+    f32 = [with_queries(0, [0.2, 0.4, 3.0, None, 0.6, 7.0]), with_queries(1, [0.2, 0.5, 3.0, None, 0.6, 7.0])]
+    int8 = [with_queries(0, [0.3, 0.4, 3.5, None, 0.9, 6.0]), with_queries(1, [0.3, 0.4, 3.5, 0.8, 0.9, 6.0])]
+    full = eval_table.mean_auc_difference(f32, int8, list(range(6)))
+    assert all(abs(d - (b - a)) < 1e-9 for d, a, b in zip(full, eval_table.auc_means(f32), eval_table.auc_means(int8)))
+
+    interval = eval_table.bootstrap_interval(f32, int8)
+    assert interval == eval_table.bootstrap_interval(f32, int8)
+    assert all(lo <= d <= hi and lo < hi for d, (lo, hi) in zip(full, interval))
+    assert eval_table.bootstrap_interval(f32, f32) == [(0.0, 0.0)] * 3
+
+    for name, content in [("s-f32.json", f32[0]), ("s-f32-seed1.json", f32[1]),
+                          ("s-int8.json", int8[0]), ("s-int8-seed1.json", int8[1])]:  # fmt: skip
+        write(tmp_path, name, content)
+    eval_table.main(tmp_path)
+    spans = " / ".join(f"[{lo:+.2f}, {hi:+.2f}]" for lo, hi in interval)
+    assert f"(95 % bootstrap interval over the queries: {spans})" in capsys.readouterr().out
