@@ -8,12 +8,17 @@ error quartiles, mean inliers and matching time per query. When DIR also holds r
 seeds (<scene>-<precision>-seed<S>.json), a second table gives each AUC's mean over all seeds with
 its range, and the f16 - f32 and int8 - f32 differences of the means with a 95 % paired bootstrap
 interval over the queries (the same resampled queries for both precisions and every seed), which says
-how far the difference could move with other queries of the same scene. Standard library only.
+how far the difference could move with other queries of the same scene. With `--baseline OTHER_DIR`
+(reports of another model, same protocol), it also prints each scene's and precision's difference to that
+model over the seeds both hold, with the same interval: the test for shipping a new export. Standard
+library only.
+
+    python3 tools/train/eval_table.py DIR [--baseline OTHER_DIR]
 """
 
+import argparse
 import json
 import random
-import sys
 from pathlib import Path
 
 PRECISIONS = ["f32", "f16", "int8"]
@@ -89,10 +94,12 @@ def bootstrap_interval(base: list[dict], other: list[dict]) -> list[tuple[float,
     return [(sorted(column)[low], sorted(column)[high]) for column in zip(*samples)]
 
 
-def difference_line(base: list[dict], other: list[dict], precision: str) -> str:
+def difference_line(base: list[dict], other: list[dict], label: str) -> str:
     diff = " / ".join(f"{b - a:+.2f}" for a, b in zip(auc_means(base), auc_means(other)))
-    line = f"{base[0]['scene']}: {precision} - f32, mean AUC @1/5/10 px: {diff}"
-    if all("per_query" in r for r in base + other):
+    line = f"{base[0]['scene']}: {label}, mean AUC @1/5/10 px: {diff}"
+    reports = base + other
+    query_sets = {frozenset(query_errors(r)) for r in reports} if all("per_query" in r for r in reports) else set()
+    if len(query_sets) == 1:
         spans = " / ".join(f"[{lo:+.2f}, {hi:+.2f}]" for lo, hi in bootstrap_interval(base, other))
         line += f" (95 % bootstrap interval over the queries: {spans})"
     return line
@@ -107,7 +114,20 @@ def seed_row(scene: str, precision: str, reports: list[dict]) -> str:
     return f"| {scene} | {precision} | {seeds} | {cells} | {spans} |"
 
 
-def main(folder: Path) -> None:
+def baseline_lines(reports: dict, baseline: Path) -> list[str]:
+    """Per scene and precision: this model minus the baseline's, over the seeds both hold."""
+    lines = []
+    for (scene, precision), found in reports.items():
+        base = seed_reports(baseline, scene, precision)
+        seeds = {r["seed"] for r in found} & {r["seed"] for r in base}
+        if seeds:
+            mine = [r for r in found if r["seed"] in seeds]
+            theirs = [r for r in base if r["seed"] in seeds]
+            lines.append(difference_line(theirs, mine, f"{precision} - baseline {precision}"))
+    return lines
+
+
+def main(folder: Path, baseline: Path | None = None) -> None:
     scenes = [path.name[: -len("-f32.json")] for path in sorted(folder.glob("*-f32.json"))]
     reports = {(scene, p): seed_reports(folder, scene, p) for scene in scenes for p in PRECISIONS}
     reports = {key: found for key, found in reports.items() if found}
@@ -116,8 +136,14 @@ def main(folder: Path) -> None:
     print("|---|---|---|---|---|---|---|---|")
     for (_, precision), found in reports.items():
         print(row(found[0], precision))
-    if all(len(found) == 1 for found in reports.values()):
-        return
+    if any(len(found) > 1 for found in reports.values()):
+        seed_tables(scenes, reports)
+    if baseline is not None:
+        print()
+        print("\n".join(baseline_lines(reports, baseline)))
+
+
+def seed_tables(scenes: list[str], reports: dict) -> None:
     print()
     print("| scene | weights | seeds | mean AUC @1/5/10 px | range over the seeds |")
     print("|---|---|---|---|---|")
@@ -128,8 +154,12 @@ def main(folder: Path) -> None:
         for precision in ("f16", "int8"):
             f32, other = reports.get((scene, "f32")), reports.get((scene, precision))
             if f32 and other:
-                print(difference_line(f32, other, precision))
+                print(difference_line(f32, other, f"{precision} - f32"))
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]))
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("folder", type=Path)
+    parser.add_argument("--baseline", type=Path, help="reports of another model to compare with")
+    args = parser.parse_args()
+    main(args.folder, args.baseline)

@@ -73,3 +73,24 @@ def test_bootstrap_interval_brackets_the_difference_and_is_reproducible(tmp_path
     eval_table.main(tmp_path)
     spans = " / ".join(f"[{lo:+.2f}, {hi:+.2f}]" for lo, hi in interval)
     assert f"(95 % bootstrap interval over the queries: {spans})" in capsys.readouterr().out
+
+
+def test_baseline_comparison_uses_the_seeds_both_models_hold(tmp_path, capsys):
+    new, old = tmp_path / "new", tmp_path / "old"
+    new.mkdir()
+    old.mkdir()
+    write(new, "s-f32.json", with_queries(0, [0.2, 0.4, 3.0]))
+    write(new, "s-f32-seed1.json", with_queries(1, [0.2, 0.4, 2.0]))
+    write(old, "s-f32.json", with_queries(0, [0.5, 0.4, None]))
+    write(old, "s-f32-seed7.json", with_queries(7, [0.1, 0.1, 0.1]))
+
+    lines = eval_table.baseline_lines({("s", "f32"): eval_table.seed_reports(new, "s", "f32")}, old)
+    assert len(lines) == 1
+    only_seed_0 = eval_table.mean_auc_difference(
+        [with_queries(0, [0.5, 0.4, None])], [with_queries(0, [0.2, 0.4, 3.0])], [0, 1, 2]
+    )
+    diff = " / ".join(f"{d:+.2f}" for d in only_seed_0)
+    assert lines[0].startswith(f"colmap/s: f32 - baseline f32, mean AUC @1/5/10 px: {diff} (95 % bootstrap")
+
+    eval_table.main(new, old)
+    assert lines[0] in capsys.readouterr().out
