@@ -66,6 +66,10 @@ pub struct Args {
     /// Seed of the protocol's random choices.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Cap on RANSAC's minimal samples per query (the localizer's default; the adaptive
+    /// stop usually ends earlier).
+    #[arg(long, default_value_t = RansacConfig::new().max_iterations)]
+    pub ransac_iterations: u32,
     /// Worker threads, each with its own localizer (results do not depend on it; timings
     /// do).
     #[arg(long, default_value_t = 1)]
@@ -203,6 +207,11 @@ pub struct QueryResult {
     pub timings_ms: TimingsMs,
 }
 
+/// The RANSAC cap of reports written before it was recorded.
+fn default_ransac_iterations() -> u32 {
+    RansacConfig::new().max_iterations
+}
+
 /// Summary of an evaluation: the JSON report.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Report {
@@ -216,6 +225,9 @@ pub struct Report {
     pub k: usize,
     /// Protocol seed.
     pub seed: u64,
+    /// Cap on RANSAC's minimal samples per query.
+    #[serde(default = "default_ransac_iterations")]
+    pub ransac_max_iterations: u32,
     /// Queries evaluated.
     pub queries: usize,
     /// Queries without a pose.
@@ -607,6 +619,7 @@ pub fn evaluate(
         precision_sinkhorn: precision,
         k: options.protocol.k,
         seed: options.protocol.seed,
+        ransac_max_iterations: options.localizer.ransac.max_iterations,
         queries: n,
         failures: per_query.iter().filter(|q| q.failure.is_some()).count(),
         auc_1px: auc[0],
@@ -794,7 +807,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     scene.name = source.name();
     let options = EvalOptions {
         protocol: ProtocolParams::for_localizer(args.k, args.queries, args.seed, CAPACITY),
-        localizer: LocalizerConfig::new(),
+        localizer: LocalizerConfig {
+            ransac: RansacConfig {
+                max_iterations: args.ransac_iterations,
+                ..RansacConfig::new()
+            },
+            ..LocalizerConfig::new()
+        },
         threads: args.threads,
     };
     let model_path = args.model.clone().unwrap_or_else(default_model_path);

@@ -174,3 +174,22 @@ fn plot_writes_a_png_of_the_curves() {
     assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");
     assert!(bytes.len() > 1000);
 }
+
+#[test]
+fn the_ransac_cap_is_applied_and_recorded_in_the_report() {
+    let scene = synthetic_scene(1, 2);
+    let mut capped = options(10, 4, 1);
+    capped.localizer.ransac.max_iterations = 3;
+    let report = evaluate(&scene, Matching::Oracle, &capped, false).unwrap();
+    assert_eq!(report.ransac_max_iterations, 3);
+    assert!(report.per_query.iter().all(|q| q.ransac_iterations <= 3));
+
+    let default = evaluate(&scene, Matching::Oracle, &options(10, 4, 1), false).unwrap();
+    assert_eq!(default.ransac_max_iterations, 1000);
+    let mut json = serde_json::to_value(&default).unwrap();
+    json.as_object_mut()
+        .unwrap()
+        .remove("ransac_max_iterations");
+    let older: Report = serde_json::from_value(json).unwrap();
+    assert_eq!(older.ransac_max_iterations, 1000);
+}
