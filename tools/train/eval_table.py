@@ -73,22 +73,32 @@ def query_errors(report: dict) -> dict[int, float]:
     }
 
 
+def mean_aucs(errors_per_seed: list[dict[int, float]], queries: list[int]) -> list[float]:
+    """Each threshold's AUC over the seeds' errors of the given query ids (repeats allowed), averaged."""
+    return [
+        sum(error_auc([errors[q] for q in queries], t) for errors in errors_per_seed) / len(errors_per_seed)
+        for t in AUC_THRESHOLDS_PX
+    ]
+
+
+def errors_difference(base: list[dict[int, float]], other: list[dict[int, float]], queries: list[int]) -> list[float]:
+    return [b - a for a, b in zip(mean_aucs(base, queries), mean_aucs(other, queries))]
+
+
 def mean_auc_difference(base: list[dict], other: list[dict], queries: list[int]) -> list[float]:
     """Mean AUC over the seeds of `other` minus that of `base`, on the given query ids (repeats allowed)."""
-    def mean_aucs(reports: list[dict]) -> list[float]:
-        errors = [query_errors(r) for r in reports]
-        return [sum(error_auc([e[q] for q in queries], t) for e in errors) / len(errors) for t in AUC_THRESHOLDS_PX]
-
-    return [b - a for a, b in zip(mean_aucs(base), mean_aucs(other))]
+    return errors_difference([query_errors(r) for r in base], [query_errors(r) for r in other], queries)
 
 
 def bootstrap_interval(base: list[dict], other: list[dict]) -> list[tuple[float, float]]:
     """95 % percentile interval of `mean_auc_difference` when the queries are resampled with replacement
     (seeded, so the table is reproducible)."""
-    queries = sorted(query_errors(base[0]))
+    base_errors, other_errors = [query_errors(r) for r in base], [query_errors(r) for r in other]
+    queries = sorted(base_errors[0])
     rng = random.Random(BOOTSTRAP_SEED)
     samples = [
-        mean_auc_difference(base, other, rng.choices(queries, k=len(queries))) for _ in range(BOOTSTRAP_RESAMPLES)
+        errors_difference(base_errors, other_errors, rng.choices(queries, k=len(queries)))
+        for _ in range(BOOTSTRAP_RESAMPLES)
     ]
     low, high = int(0.025 * BOOTSTRAP_RESAMPLES), int(0.975 * BOOTSTRAP_RESAMPLES) - 1
     return [(sorted(column)[low], sorted(column)[high]) for column in zip(*samples)]
