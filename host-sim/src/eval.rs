@@ -207,9 +207,9 @@ pub struct QueryResult {
     pub timings_ms: TimingsMs,
 }
 
-/// The RANSAC cap of reports written before it was recorded.
+/// The RANSAC cap of reports written before it was recorded (the localizer's default then).
 fn default_ransac_iterations() -> u32 {
-    RansacConfig::new().max_iterations
+    1000
 }
 
 /// Summary of an evaluation: the JSON report.

@@ -55,7 +55,15 @@ pub struct Args {
     /// Disable the final Levenberg-Marquardt refinement.
     #[arg(long)]
     pub no_refine: bool,
+    /// Cap on RANSAC's minimal samples per set (default: the anchors' cap, not the
+    /// localizer's).
+    #[arg(long, default_value_t = ANCHOR_MAX_ITERATIONS)]
+    pub max_iterations: u32,
 }
+
+/// RANSAC cap under which the anchors (PoseLib, OpenCV) were measured
+/// (`shared/pnp/README.md`), so that comparisons with them are like for like.
+pub const ANCHOR_MAX_ITERATIONS: u32 = 1000;
 
 /// One file of synthetic sets (format: `shared/pnp/README.md`).
 #[derive(Debug, Deserialize)]
@@ -136,6 +144,7 @@ pub fn ransac_config(args: &Args) -> RansacConfig {
         threshold: args.threshold,
         local_optimization: !args.no_lo,
         refine: !args.no_refine,
+        max_iterations: args.max_iterations,
         ..RansacConfig::new()
     }
 }

@@ -1,10 +1,13 @@
 //! RANSAC-PnP on the shared synthetic PnP sets (`shared/pnp`): success rate per
-//! configuration at least PoseLib's on the very same sets (statistical floors, no timing).
+//! configuration at least PoseLib's on the very same sets and under the same cap of 1000
+//! minimal samples (statistical floors, no timing).
 
 use std::path::{Path, PathBuf};
 
 use gomatch::RansacConfig;
-use gomatch_sim::pnp::{evaluate_file, list_set_files, load_anchors, load_set_file};
+use gomatch_sim::pnp::{
+    evaluate_file, list_set_files, load_anchors, load_set_file, ANCHOR_MAX_ITERATIONS,
+};
 
 /// `shared/pnp` beside the repository root, if present.
 fn shared_pnp() -> Option<PathBuf> {
@@ -28,10 +31,14 @@ fn success_rates_reach_poselib_on_the_shared_sets() {
         poselib.len(),
         "one set file per PoseLib configuration"
     );
+    let config = RansacConfig {
+        max_iterations: ANCHOR_MAX_ITERATIONS,
+        ..RansacConfig::new()
+    };
     let mut shortfalls = Vec::new();
     for (name, path) in &files {
         let file = load_set_file(path).unwrap();
-        let ours = evaluate_file(&file, &RansacConfig::new(), 0).unwrap();
+        let ours = evaluate_file(&file, &config, 0).unwrap();
         let theirs = poselib[name].success_rate;
         println!(
             "{name}: success {:.2} (PoseLib {theirs:.2})",
