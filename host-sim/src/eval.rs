@@ -7,16 +7,17 @@
 //! Reported: the reprojection-error AUC at 1/5/10 px (ground-truth inlier 3D points
 //! projected with the true and the estimated pose, [`query_reprojection_error`]), the
 //! rotation and translation error quartiles of the localized queries, failures, mean
-//! match counts per stage and stage timings.
+//! match counts per stage, how many merged matches and inliers are ground-truth pairs
+//! ([`Correct`]), and stage timings.
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::Instant;
 
 use anyhow::{bail, Context};
 use clap::{Parser, ValueEnum};
-use gomatch::localizer::{Clock, MatchCounts, StageTimings};
+use gomatch::localizer::{Clock, Correspondence, MatchCounts, StageTimings};
 use gomatch::map::Map;
 use gomatch::sinkhorn::PlanScalar;
 use gomatch::{
@@ -27,12 +28,12 @@ use half::f16;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
 
-use crate::map::{build_map, ModelArgs};
+use crate::map::{build_map, map_point_index, ModelArgs};
 use crate::protocol::{
     error_auc, quantiles, query_reprojection_error, query_sample, select_queries, ProtocolParams,
     QuerySample,
 };
-use crate::scene::{ImageId, Scene};
+use crate::scene::{ImageId, PointId, Scene};
 
 /// Keypoint and per-view point capacity of the evaluated localizer (the paper's 1024).
 pub const CAPACITY: usize = 1024;
@@ -144,6 +145,17 @@ impl From<MatchCounts> for Counts {
     }
 }
 
+/// How many of the merged matches and of the pose's inliers are ground-truth pairs (the
+/// protocol's, supp. "Ground Truth Correspondences"): what separates a matching failure
+/// from a pose-solver failure.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct Correct {
+    /// Merged matches that are ground-truth pairs.
+    pub merged: f64,
+    /// Inliers that are ground-truth pairs.
+    pub inliers: f64,
+}
+
 /// Stage timings in milliseconds (the core's [`StageTimings`]).
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 pub struct TimingsMs {
@@ -190,6 +202,9 @@ pub struct QueryResult {
     pub gt_matches: usize,
     /// Match counts per stage.
     pub counts: Counts,
+    /// Correct matches among them (absent in reports written before it was recorded).
+    #[serde(default)]
+    pub correct: Option<Correct>,
     /// RANSAC minimal samples drawn.
     pub ransac_iterations: u32,
     /// Why the query failed, if it did.
@@ -253,6 +268,9 @@ pub struct Report {
     pub mean_gt_matches: f64,
     /// Mean match counts per stage.
     pub mean_counts: Counts,
+    /// Mean correct matches (absent in reports written before it was recorded).
+    #[serde(default)]
+    pub mean_correct: Option<Correct>,
     /// Mean stage timings.
     pub mean_timings_ms: TimingsMs,
     /// Worker threads used (timings are per query, measured under that load).
@@ -317,6 +335,7 @@ struct Outcome {
     estimate: Option<Pose>,
     failure: Option<String>,
     counts: MatchCounts,
+    correct: Correct,
     views_used: usize,
     ransac_iterations: u32,
     timings: StageTimings,
@@ -349,6 +368,10 @@ fn oracle_outcome(
         estimate,
         failure,
         counts,
+        correct: Correct {
+            merged: counts.merged as f64,
+            inliers: counts.inliers as f64,
+        },
         views_used: sample.views.len(),
         ransac_iterations,
         timings: StageTimings {
@@ -374,6 +397,7 @@ fn localizer_outcome<S: PlanScalar>(
     localizer: &mut Localizer<CAPACITY, S>,
     model: &Model<'_>,
     map: &Map<'_>,
+    point_index: &BTreeMap<PointId, u32>,
     sample: &QuerySample,
     config: &LocalizerConfig,
 ) -> anyhow::Result<Outcome> {
@@ -394,14 +418,39 @@ fn localizer_outcome<S: PlanScalar>(
             Some(&clock),
         )
         .with_context(|| format!("localizing image {}", sample.image_id))?;
+    let truth = ground_truth_pairs(sample, point_index);
+    let is_true = |c: &&Correspondence| truth.contains(&(usize::from(c.keypoint), c.point));
+    let correct = Correct {
+        merged: localizer.correspondences().iter().filter(is_true).count() as f64,
+        inliers: localizer.inliers().filter(is_true).count() as f64,
+    };
     Ok(Outcome {
         estimate: result.outcome.ok(),
         failure: result.outcome.err().map(|f| f.to_string()),
         counts: result.counts,
+        correct,
         views_used: result.views_used,
         ransac_iterations: result.ransac_iterations,
         timings: result.timings.unwrap_or_default(),
     })
+}
+
+/// The ground-truth pairs of every view as (keypoint index, index of the 3D point in the
+/// scene's map blob, [`map_point_index`]).
+pub fn ground_truth_pairs(
+    sample: &QuerySample,
+    point_index: &BTreeMap<PointId, u32>,
+) -> BTreeSet<(usize, u32)> {
+    sample
+        .views
+        .iter()
+        .flat_map(|view| {
+            view.gt_pairs.iter().filter_map(|&(keypoint, point)| {
+                let id = view.point_ids.get(point)?;
+                Some((keypoint, *point_index.get(id)?))
+            })
+        })
+        .collect()
 }
 
 /// The reference implementation's reprojection error: mean pixel distance between each
@@ -454,6 +503,7 @@ fn score(sample: &QuerySample, outcome: Outcome) -> QueryResult {
         views_used: outcome.views_used,
         gt_matches: oracle_correspondences(sample).0.len(),
         counts: outcome.counts.into(),
+        correct: Some(outcome.correct),
         ransac_iterations: outcome.ransac_iterations,
         failure: outcome.failure,
         reprojection_px: error.is_finite().then_some(error),
@@ -470,6 +520,7 @@ fn run_workers<S: PlanScalar + Send>(
     samples: &[QuerySample],
     matching: Matching<'_>,
     map: &Map<'_>,
+    point_index: &BTreeMap<PointId, u32>,
     options: &EvalOptions,
     progress: &ProgressBar,
 ) -> anyhow::Result<Vec<QueryResult>> {
@@ -497,6 +548,7 @@ fn run_workers<S: PlanScalar + Send>(
                                     &mut localizer,
                                     model,
                                     map,
+                                    point_index,
                                     sample,
                                     &options.localizer,
                                 )?,
@@ -522,6 +574,15 @@ fn run_workers<S: PlanScalar + Send>(
         .into_inner()
         .map_err(|_| anyhow::anyhow!("poisoned"))?;
     Ok(results.into_iter().flatten().collect())
+}
+
+/// Mean correct matches over the queries, if every query recorded them.
+fn mean_correct(per_query: &[QueryResult]) -> Option<Correct> {
+    let correct: Vec<Correct> = per_query.iter().map(|q| q.correct).collect::<Option<_>>()?;
+    Some(Correct {
+        merged: mean(correct.iter().map(|c| c.merged)),
+        inliers: mean(correct.iter().map(|c| c.inliers)),
+    })
 }
 
 fn mean(values: impl Iterator<Item = f64>) -> f64 {
@@ -556,6 +617,7 @@ pub fn evaluate(
     let samples = protocol_samples(scene, &options.protocol);
     let blob = build_map(scene)?;
     let map = Map::from_bytes(&blob).context("reading back the map")?;
+    let point_index = map_point_index(scene)?;
     let progress = if show_progress {
         ProgressBar::new(samples.len() as u64).with_style(
             ProgressStyle::with_template("{bar:40} {pos}/{len} queries {elapsed} (eta {eta})")
@@ -566,7 +628,7 @@ pub fn evaluate(
     };
     let (per_query, localizer_bytes, model_bytes, precision) = match matching {
         Matching::Oracle => (
-            run_workers::<f32>(&samples, matching, &map, options, &progress)?,
+            run_workers::<f32>(&samples, matching, &map, &point_index, options, &progress)?,
             PnpWorkspace::<CAPACITY>::BYTES,
             0,
             SinkhornPrecision::F32,
@@ -576,7 +638,7 @@ pub fn evaluate(
             precision: SinkhornPrecision::F16,
             ..
         } => (
-            run_workers::<f16>(&samples, matching, &map, options, &progress)?,
+            run_workers::<f16>(&samples, matching, &map, &point_index, options, &progress)?,
             Localizer::<CAPACITY, f16>::BYTES,
             blob_bytes,
             SinkhornPrecision::F16,
@@ -586,7 +648,7 @@ pub fn evaluate(
             precision: SinkhornPrecision::F32,
             ..
         } => (
-            run_workers::<f32>(&samples, matching, &map, options, &progress)?,
+            run_workers::<f32>(&samples, matching, &map, &point_index, options, &progress)?,
             Localizer::<CAPACITY, f32>::BYTES,
             blob_bytes,
             SinkhornPrecision::F32,
@@ -637,6 +699,7 @@ pub fn evaluate(
             merged: counts(|c| c.merged),
             inliers: counts(|c| c.inliers),
         },
+        mean_correct: mean_correct(&per_query),
         mean_timings_ms: TimingsMs {
             prepare: timing(|t| t.prepare),
             encode: timing(|t| t.encode),
@@ -786,6 +849,12 @@ fn print_report(report: &Report) {
         "  mean per query: {:.0} keypoints, {:.1} views, {:.1} ground-truth matches; matches {:.1} mutual / {:.1} classified / {:.1} merged / {:.1} inliers",
         report.mean_keypoints, report.mean_views_used, report.mean_gt_matches, c.mutual, c.classified, c.merged, c.inliers
     );
+    if let Some(t) = &report.mean_correct {
+        println!(
+            "  of which ground-truth pairs: {:.1} merged, {:.1} inliers",
+            t.merged, t.inliers
+        );
+    }
     let t = &report.mean_timings_ms;
     println!(
         "  mean time per query (ms, {} thread(s)): encode {:.1}, match {:.1}, merge {:.2}, pose {:.2}, total {:.1}",

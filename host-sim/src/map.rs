@@ -82,21 +82,32 @@ pub struct StatsArgs {
     pub map: PathBuf,
 }
 
-/// Encodes a scene as a map blob: every 3D point with at least one observation (in id
-/// order), every camera (in id order), and every image as a view with the distinct points
-/// it observes.
-pub fn build_map(scene: &Scene) -> anyhow::Result<Vec<u8>> {
-    let point_ids: Vec<u64> = scene
+/// The ids of the 3D points a map blob of the scene holds, in blob order: those with at
+/// least one observation, in id order.
+fn mapped_point_ids(scene: &Scene) -> Vec<u64> {
+    scene
         .points
         .values()
         .filter(|p| !p.track.is_empty())
         .map(|p| p.id)
-        .collect();
-    let point_index: BTreeMap<u64, u32> = point_ids
+        .collect()
+}
+
+/// Index in the map blob ([`build_map`]) of each mapped 3D point id.
+pub fn map_point_index(scene: &Scene) -> anyhow::Result<BTreeMap<u64, u32>> {
+    mapped_point_ids(scene)
         .iter()
         .enumerate()
         .map(|(i, &id)| Ok((id, u32::try_from(i)?)))
-        .collect::<anyhow::Result<_>>()?;
+        .collect()
+}
+
+/// Encodes a scene as a map blob: every 3D point with at least one observation (in id
+/// order), every camera (in id order), and every image as a view with the distinct points
+/// it observes.
+pub fn build_map(scene: &Scene) -> anyhow::Result<Vec<u8>> {
+    let point_ids = mapped_point_ids(scene);
+    let point_index = map_point_index(scene)?;
     let points: Vec<[f32; 3]> = point_ids
         .iter()
         .map(|id| {

@@ -4,17 +4,18 @@
 //! the same database points, results do not depend on the thread count, and the plot is
 //! written. The real scenes are skipped with a message when `shared/` is absent.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 use gomatch::localizer::view_point_bearings;
 use gomatch::map::Map;
 use gomatch::LocalizerConfig;
+use gomatch::Model;
 use gomatch_sim::eval::{
-    curve_label, evaluate, plot_curves, protocol_samples, report_errors, EvalOptions, Matching,
-    QueryResult, Report, TimingsMs, CAPACITY,
+    curve_label, evaluate, ground_truth_pairs, plot_curves, protocol_samples, report_errors,
+    EvalOptions, Matching, QueryResult, Report, SinkhornPrecision, TimingsMs, CAPACITY,
 };
-use gomatch_sim::map::build_map;
+use gomatch_sim::map::{build_map, map_point_index};
 use gomatch_sim::protocol::ProtocolParams;
 use gomatch_sim::scene::{Scene, SceneSource};
 use gomatch_sim::synthetic::synthetic_scene;
@@ -29,9 +30,10 @@ fn options(k: usize, queries: usize, threads: usize) -> EvalOptions {
 
 fn print(report: &Report) {
     println!(
-        "{} k={} oracle: {} queries, {} failures, AUC @1/5/10 px {:.2} / {:.2} / {:.2}",
+        "{} k={} {}: {} queries, {} failures, AUC @1/5/10 px {:.2} / {:.2} / {:.2}",
         report.scene,
         report.k,
+        report.matcher,
         report.queries,
         report.failures,
         report.auc_1px,
@@ -193,4 +195,86 @@ fn the_ransac_cap_is_applied_and_recorded_in_the_report() {
     // Reports written before the cap was recorded ran at the default of that time, 1000.
     let older: Report = serde_json::from_value(json).unwrap();
     assert_eq!(older.ransac_max_iterations, 1000);
+}
+
+#[test]
+fn ground_truth_pairs_name_the_map_points_of_the_views() {
+    let scene = synthetic_scene(1, 0);
+    let blob = build_map(&scene).unwrap();
+    let map = Map::from_bytes(&blob).unwrap();
+    let index = map_point_index(&scene).unwrap();
+    let samples = protocol_samples(&scene, &options(10, 5, 1).protocol);
+    assert!(!samples.is_empty());
+    let bits = |x: [f32; 3]| x.map(f32::to_bits);
+    for sample in &samples {
+        let expected: BTreeSet<(usize, [u32; 3])> = sample
+            .views
+            .iter()
+            .flat_map(|v| {
+                v.gt_pairs.iter().map(|&(keypoint, point)| {
+                    let x = v.xyz[point];
+                    (keypoint, bits([x.x as f32, x.y as f32, x.z as f32]))
+                })
+            })
+            .collect();
+        let named: BTreeSet<(usize, [u32; 3])> = ground_truth_pairs(sample, &index)
+            .into_iter()
+            .map(|(keypoint, point)| (keypoint, bits(map.point(point as usize).unwrap())))
+            .collect();
+        assert!(!named.is_empty());
+        assert_eq!(named, expected, "image {}", sample.image_id);
+    }
+}
+
+#[test]
+fn correct_matches_are_counted_among_the_merged_matches_and_inliers() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/gomatch-int8.bin");
+    let Ok(blob) = std::fs::read(&path) else {
+        println!("SKIPPED: no shipped model at {}", path.display());
+        return;
+    };
+    let model = Model::from_bytes(&blob).unwrap();
+    let matching = Matching::Model {
+        model: &model,
+        blob_bytes: blob.len(),
+        precision: SinkhornPrecision::F16,
+    };
+    let scene = synthetic_scene(1, 0);
+    let report = evaluate(&scene, matching, &options(10, 4, 2), false).unwrap();
+    print(&report);
+    for query in &report.per_query {
+        let correct = query.correct.expect("recorded for every query");
+        assert!(correct.merged <= query.counts.merged, "{query:?}");
+        assert!(
+            correct.inliers <= query.counts.inliers.min(correct.merged),
+            "{query:?}"
+        );
+        if query.rotation_deg.is_some_and(|r| r < 1.0) {
+            assert!(
+                correct.inliers >= 4.0,
+                "an accurate pose rests on true matches: {query:?}"
+            );
+        }
+    }
+    assert!(report
+        .per_query
+        .iter()
+        .any(|q| q.rotation_deg.is_some_and(|r| r < 1.0)));
+    let mean = report.mean_correct.expect("every query recorded it");
+    let n = report.per_query.len() as f64;
+    let merged: f64 = report
+        .per_query
+        .iter()
+        .map(|q| q.correct.unwrap().merged)
+        .sum();
+    assert_eq!(mean.merged, merged / n);
+
+    let oracle = evaluate(&scene, Matching::Oracle, &options(10, 4, 1), false).unwrap();
+    for query in &oracle.per_query {
+        let correct = query.correct.unwrap();
+        assert_eq!(
+            (correct.merged, correct.inliers),
+            (query.counts.merged, query.counts.inliers)
+        );
+    }
 }

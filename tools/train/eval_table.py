@@ -10,8 +10,10 @@ its range, and the f16 - f32 and int8 - f32 differences of the means with a 95 %
 interval over the queries (the same resampled queries for both precisions and every seed), which says
 how far the difference could move with other queries of the same scene. With `--baseline OTHER_DIR`
 (reports of another model, same protocol), it also prints each scene's and precision's difference to that
-model over the seeds both hold, with the same interval: the test for shipping a new export. Standard
-library only.
+model over the seeds both hold, with the same interval: the test for shipping a new export. For seed-0
+reports that record `correct`, a last table splits the queries into those localized within 10 px and the
+others, with the medians of their ground-truth merged matches and inliers (matching vs pose failures).
+Standard library only.
 
     python3 tools/train/eval_table.py DIR [--baseline OTHER_DIR]
 """
@@ -124,6 +126,47 @@ def seed_row(scene: str, precision: str, reports: list[dict]) -> str:
     return f"| {scene} | {precision} | {seeds} | {cells} | {spans} |"
 
 
+def median(values: list[float]) -> float:
+    ordered = sorted(values)
+    middle = len(ordered) // 2
+    return ordered[middle] if len(ordered) % 2 else (ordered[middle - 1] + ordered[middle]) / 2
+
+
+def true_match_cells(queries: list[dict]) -> str:
+    """Count, then medians of the true merged matches (range), merged matches, true inliers, inliers."""
+    if not queries:
+        return "0 | - | -"
+    true_merged = [q["correct"]["merged"] for q in queries]
+    merged = [q["counts"]["merged"] for q in queries]
+    true_inliers = [q["correct"]["inliers"] for q in queries]
+    inliers = [q["counts"]["inliers"] for q in queries]
+    return (f"{len(queries)} | {median(true_merged):g} ({min(true_merged):g}-{max(true_merged):g}) of "
+            f"{median(merged):g} | {median(true_inliers):g} of {median(inliers):g}")
+
+
+def true_match_row(report: dict, precision: str, threshold_px: float = 10.0) -> str | None:
+    """Queries localized within `threshold_px` against the others: how many of their merged matches
+    and inliers are ground-truth pairs (medians), or None for reports without that record."""
+    queries = report.get("per_query", [])
+    if not queries or any(q.get("correct") is None for q in queries):
+        return None
+    within = [q for q in queries if q["reprojection_px"] is not None and q["reprojection_px"] < threshold_px]
+    others = [q for q in queries if q not in within]
+    return f"| {report['scene']} | {precision} | {true_match_cells(within)} | {true_match_cells(others)} |"
+
+
+def true_match_table(reports: dict) -> None:
+    rows = [true_match_row(found[0], precision) for (_, precision), found in reports.items()]
+    rows = [r for r in rows if r is not None]
+    if rows:
+        print()
+        print("| scene | weights | queries within 10 px | their true merged matches (range) of merged, median "
+              "| true inliers of inliers | other queries | their true merged (range) of merged | true inliers "
+              "of inliers |")
+        print("|---|---|---|---|---|---|---|---|")
+        print("\n".join(rows))
+
+
 def baseline_lines(reports: dict, baseline: Path) -> list[str]:
     """Per scene and precision: this model minus the baseline's, over the seeds both hold."""
     lines = []
@@ -148,6 +191,7 @@ def main(folder: Path, baseline: Path | None = None) -> None:
         print(row(found[0], precision))
     if any(len(found) > 1 for found in reports.values()):
         seed_tables(scenes, reports)
+    true_match_table(reports)
     if baseline is not None:
         print()
         print("\n".join(baseline_lines(reports, baseline)))

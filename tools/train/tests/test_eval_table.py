@@ -94,3 +94,23 @@ def test_baseline_comparison_uses_the_seeds_both_models_hold(tmp_path, capsys):
 
     eval_table.main(new, old)
     assert lines[0] in capsys.readouterr().out
+
+
+def test_true_match_table_splits_the_queries_at_10_px(tmp_path, capsys):
+    def query(error, true_merged, merged, true_inliers, inliers):
+        return {"reprojection_px": error, "counts": {"merged": merged, "inliers": inliers},
+                "correct": {"merged": true_merged, "inliers": true_inliers}}  # fmt: skip
+
+    content = report("colmap/s", 0, (10.0, 20.0, 30.0))
+    content["per_query"] = [query(0.5, 40.0, 300.0, 38.0, 41.0), query(2.0, 20.0, 200.0, 19.0, 22.0),
+                            query(None, 1.0, 250.0, 0.0, 5.0), query(80.0, 3.0, 150.0, 0.0, 6.0),
+                            query(12.0, 9.0, 100.0, 2.0, 7.0)]  # fmt: skip
+    write(tmp_path, "s-f32.json", content)
+    older = report("colmap/s", 0, (9.0, 20.0, 30.0))
+    older["per_query"] = [{"reprojection_px": 1.0, "counts": {"merged": 1.0, "inliers": 1.0}}]
+    write(tmp_path, "s-int8.json", older)
+
+    eval_table.main(tmp_path)
+    out = capsys.readouterr().out
+    assert "| colmap/s | f32 | 2 | 30 (20-40) of 250 | 28.5 of 31.5 | 3 | 3 (1-9) of 150 | 0 of 6 |" in out
+    assert "| colmap/s | int8 |" not in out.split("true inliers of inliers")[1]
