@@ -95,8 +95,12 @@ fn mapped_point_ids(scene: &Scene) -> Vec<u64> {
 
 /// Index in the map blob ([`build_map`]) of each mapped 3D point id.
 pub fn map_point_index(scene: &Scene) -> anyhow::Result<BTreeMap<u64, u32>> {
-    mapped_point_ids(scene)
-        .iter()
+    index_by_id(&mapped_point_ids(scene))
+}
+
+/// Position of each id in `ids`.
+fn index_by_id(ids: &[u64]) -> anyhow::Result<BTreeMap<u64, u32>> {
+    ids.iter()
         .enumerate()
         .map(|(i, &id)| Ok((id, u32::try_from(i)?)))
         .collect()
@@ -107,7 +111,7 @@ pub fn map_point_index(scene: &Scene) -> anyhow::Result<BTreeMap<u64, u32>> {
 /// it observes.
 pub fn build_map(scene: &Scene) -> anyhow::Result<Vec<u8>> {
     let point_ids = mapped_point_ids(scene);
-    let point_index = map_point_index(scene)?;
+    let point_index = index_by_id(&point_ids)?;
     let points: Vec<[f32; 3]> = point_ids
         .iter()
         .map(|id| {

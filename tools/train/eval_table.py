@@ -21,6 +21,7 @@ Standard library only.
 import argparse
 import json
 import random
+from statistics import median
 from pathlib import Path
 
 PRECISIONS = ["f32", "f16", "int8"]
@@ -126,12 +127,6 @@ def seed_row(scene: str, precision: str, reports: list[dict]) -> str:
     return f"| {scene} | {precision} | {seeds} | {cells} | {spans} |"
 
 
-def median(values: list[float]) -> float:
-    ordered = sorted(values)
-    middle = len(ordered) // 2
-    return ordered[middle] if len(ordered) % 2 else (ordered[middle - 1] + ordered[middle]) / 2
-
-
 def true_match_cells(queries: list[dict]) -> str:
     """Count, then medians of the true merged matches (range), merged matches, true inliers, inliers."""
     if not queries:
@@ -150,8 +145,10 @@ def true_match_row(report: dict, precision: str, threshold_px: float = 10.0) -> 
     queries = report.get("per_query", [])
     if not queries or any(q.get("correct") is None for q in queries):
         return None
-    within = [q for q in queries if q["reprojection_px"] is not None and q["reprojection_px"] < threshold_px]
-    others = [q for q in queries if q not in within]
+    within, others = [], []
+    for q in queries:
+        localized = q["reprojection_px"] is not None and q["reprojection_px"] < threshold_px
+        (within if localized else others).append(q)
     return f"| {report['scene']} | {precision} | {true_match_cells(within)} | {true_match_cells(others)} |"
 
 
