@@ -6,9 +6,11 @@
 #   tools/train/train_gpu.sh GOMATCH_SIM DATA OUT MINUTES RUN...
 #
 # GOMATCH_SIM: a built `gomatch-sim`; DATA: the ../shared/data folder; OUT: where results go.
-# RUN: NAME:INIT:WIDTH:ENCODER_BLOCKS:CLASSIFIER_BLOCKS; INIT is an export to fine-tune (path relative to the
-# repository root) or empty for a new model. Example, the paper's configuration from scratch and the shipped one
-# fine-tuned:   paper::128:12:4 paper3:models/gomatch.safetensors:128:12:4
+# RUN: NAME:INIT:WIDTH:ENCODER_BLOCKS:CLASSIFIER_BLOCKS[:OPTIONS]; INIT is an export to fine-tune (path relative to
+# the repository root) or empty for a new model; OPTIONS, comma-separated, are added to (and override) the trainer
+# options below. Example, the paper's configuration from scratch, the shipped one fine-tuned, and the shipped one
+# at a tenth of the learning rate:
+#   paper::128:12:4 paper3:models/gomatch.safetensors:128:12:4 low:models/gomatch.safetensors:128:12:4:--lr,1e-4
 # Every run: at most 1024 points per set, batch 32, Adam 1e-3, outlier rate 0.5. Training data: the real training
 # scenes plus 4 x 30 synthetic scenes (seeds 0, 2, 3, 4; seed 1 is the firmware query's), each file written by
 # its own process; validation: colmap/mouse and colmap/sceaux. DEVICE=cpu tries it on a machine without a GPU,
@@ -44,9 +46,10 @@ common=(--train "$work"/real.safetensors "$work"/synthetic-*.safetensors --val "
 cd "$here"
 names=() pids=()
 for spec in "$@"; do
-    IFS=: read -r name init width encoder classifier <<<"$spec"
+    IFS=: read -r name init width encoder classifier extra <<<"$spec"
     options=(--feature-dim "$width" --encoder-blocks "$encoder" --classifier-blocks "$classifier")
     if [ -n "$init" ]; then options+=(--init "$repo/$init"); fi
+    if [ -n "$extra" ]; then IFS=, read -r -a extra_options <<<"$extra" && options+=("${extra_options[@]}"); fi
     "$py" -m gomatch_train.train "${common[@]}" --out "$work/$name" "${options[@]}" >"$work/$name.log" 2>&1 &
     names+=("$name") pids+=($!)
 done

@@ -319,6 +319,8 @@ def train(args, group: Group = Group()) -> dict:
     params = sum(p.numel() for p in run.model.parameters())
     log(f"model {run.model.config.to_json()} ({params} parameters); {len(samples)} training samples, "
         f"{len(val)} validation samples")  # fmt: skip
+    log(f"Adam lr {args.lr:g}, batch {args.batch}, outlier rate {args.outlier_rate[0]:g}-{args.outlier_rate[1]:g}, "
+        f"at most {args.max_points} points per set")  # fmt: skip
 
     if not val:
         raise SystemExit(f"no validation sample in {args.val} has >= {VAL_MIN_POINTS} points in both sets")

@@ -19,7 +19,7 @@ def test_gpu_session_script_writes_data_trains_every_run_and_collects_the_export
     if not GOMATCH_SIM.exists():
         pytest.skip(f"{GOMATCH_SIM} not built (cargo build --release -p gomatch-sim); skipping")
     env = dict(os.environ, DEVICE="cpu", SYNTHETIC_SCENES="1", PYTHON=sys.executable)
-    runs = ["tiny::16:1:1", "shipped:models/gomatch.safetensors:128:12:4"]
+    runs = ["tiny::16:1:1", "shipped:models/gomatch.safetensors:128:12:4:--lr,1e-4,--outlier-rate,0.5,0.9"]
     script = REPO_ROOT / "tools" / "train" / "train_gpu.sh"
     done = subprocess.run(
         ["bash", str(script), str(GOMATCH_SIM), str(data), str(tmp_path), "0.02", *runs],
@@ -30,4 +30,6 @@ def test_gpu_session_script_writes_data_trains_every_run_and_collects_the_export
     for name, config in (("tiny", ModelConfig(16, 1, 1)), ("shipped", ModelConfig())):
         log = (tmp_path / f"{name}.log").read_text()
         assert "% of their points kept by the equal-size crops" in log and "stopping at step" in log, log
+        options = "Adam lr 0.0001, batch 32, outlier rate 0.5-0.9" if name == "shipped" else "Adam lr 0.001, batch 32"
+        assert options in log, log
         assert load_export(str(tmp_path / f"{name}-last.safetensors")).config == config
