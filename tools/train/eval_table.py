@@ -25,6 +25,7 @@ from statistics import median
 from pathlib import Path
 
 PRECISIONS = ["f32", "f16", "int8"]
+LOCALIZED_PX = 10.0  # reprojection error under which the last table counts a query as localized
 AUC_KEYS = ("auc_1px", "auc_5px", "auc_10px")
 AUC_THRESHOLDS_PX = (1.0, 5.0, 10.0)
 BOOTSTRAP_RESAMPLES = 2000
@@ -139,15 +140,15 @@ def true_match_cells(queries: list[dict]) -> str:
             f"{median(merged):g} | {median(true_inliers):g} of {median(inliers):g}")
 
 
-def true_match_row(report: dict, precision: str, threshold_px: float = 10.0) -> str | None:
-    """Queries localized within `threshold_px` against the others: how many of their merged matches
+def true_match_row(report: dict, precision: str) -> str | None:
+    """Queries localized within `LOCALIZED_PX` against the others: how many of their merged matches
     and inliers are ground-truth pairs (medians), or None for reports without that record."""
     queries = report.get("per_query", [])
     if not queries or any(q.get("correct") is None for q in queries):
         return None
     within, others = [], []
     for q in queries:
-        localized = q["reprojection_px"] is not None and q["reprojection_px"] < threshold_px
+        localized = q["reprojection_px"] is not None and q["reprojection_px"] < LOCALIZED_PX
         (within if localized else others).append(q)
     return f"| {report['scene']} | {precision} | {true_match_cells(within)} | {true_match_cells(others)} |"
 
@@ -157,9 +158,9 @@ def true_match_table(reports: dict) -> None:
     rows = [r for r in rows if r is not None]
     if rows:
         print()
-        print("| scene | weights | queries within 10 px | their true merged matches (range) of merged, median "
-              "| true inliers of inliers | other queries | their true merged (range) of merged | true inliers "
-              "of inliers |")
+        print(f"| scene | weights | queries within {LOCALIZED_PX:g} px "
+              "| their true merged matches (range) of merged, median | true inliers of inliers | other queries "
+              "| their true merged (range) of merged | true inliers of inliers |")
         print("|---|---|---|---|---|---|---|---|")
         print("\n".join(rows))
 
