@@ -48,40 +48,22 @@ pub fn view_bearing(view_pose: &Pose, point: [f64; 3]) -> Option<[f64; 2]> {
 }
 
 /// The database points a view contributes to matching, the one rule shared by the device
-/// and the host's evaluation protocol: of the view's observed points in stored order,
-/// those with a [`view_bearing`]; when `M` of them exceed `capacity` (`N`), the ones at
-/// the evenly spaced positions `floor(i M / N)`, `i = 0..N`. The paper keeps "up to its
-/// first 1024", whose database keypoints came from a detector capped at its 1024
-/// strongest; a map's stored order carries no such ranking (a COLMAP image lists its
-/// keypoints in extraction order), so an even spread over the list keeps the sample
-/// unbiased. Yields each point's tag and its bearing. `points` is traversed twice (count,
-/// then selection).
+/// and the host's evaluation protocol: the first `capacity` of the view's observed points,
+/// in stored order, that have a [`view_bearing`] (paper supp. "Keypoint Number Control":
+/// database keypoints are used "up to its first 1024"). A map stores each view's points in
+/// the order a capped detector ranks them, so the first ones are those a detector limited
+/// to `capacity` keypoints would have kept. Yields each point's tag and its bearing.
 pub fn view_point_bearings<T, I>(
     view_pose: Pose,
     points: I,
     capacity: usize,
 ) -> impl Iterator<Item = (T, [f64; 2])>
 where
-    I: Iterator<Item = (T, [f64; 3])> + Clone,
+    I: Iterator<Item = (T, [f64; 3])>,
 {
-    let available = points
-        .clone()
-        .filter(|(_, p)| view_bearing(&view_pose, *p).is_some())
-        .count();
-    let (available, capacity) = (available as u64, capacity as u64);
-    let (mut position, mut kept) = (0u64, 0u64);
     points
-        .filter_map(move |(tag, p)| {
-            let bearing = view_bearing(&view_pose, p)?;
-            let here = position;
-            position += 1;
-            let wanted = available <= capacity || here == kept * available / capacity.max(1);
-            if wanted {
-                kept += 1;
-            }
-            wanted.then_some((tag, bearing))
-        })
-        .take(capacity as usize)
+        .filter_map(move |(tag, p)| Some((tag, view_bearing(&view_pose, p)?)))
+        .take(capacity)
 }
 
 /// A query: keypoints in pixels (at most the localizer's capacity; the caller caps) and
@@ -1037,7 +1019,7 @@ mod tests {
     }
 
     #[test]
-    fn view_points_are_those_in_front_evenly_spread_over_the_list() {
+    fn view_points_are_the_first_ones_in_front() {
         let behind = [0.0, 0.0, -1.0];
         let ahead = |i: f64| [i, 0.0, 4.0];
         let points = [
@@ -1058,15 +1040,14 @@ mod tests {
         // Six points are in front with an f32 bearing; all fit in 6 or more.
         assert_eq!(chosen(6), std::vec![0, 2, 3, 4, 6, 7]);
         assert_eq!(chosen(100), chosen(6));
-        // Three of six: positions 0, 2, 4 of the usable list.
-        assert_eq!(chosen(3), std::vec![0, 3, 6]);
-        // Four of six: positions 0, 1, 3, 4.
-        assert_eq!(chosen(4), std::vec![0, 2, 4, 6]);
+        // Fewer slots: the first usable ones, skipping those behind or overflowing.
+        assert_eq!(chosen(3), std::vec![0, 2, 3]);
+        assert_eq!(chosen(5), std::vec![0, 2, 3, 4, 6]);
         assert_eq!(chosen(1), std::vec![0]);
         assert!(chosen(0).is_empty());
         let bearings: Vec<[f64; 2]> = view_point_bearings(Pose::identity(), points.into_iter(), 2)
             .map(|(_, b)| b)
             .collect();
-        assert_eq!(bearings, std::vec![[0.0, 0.0], [0.75, 0.0]]);
+        assert_eq!(bearings, std::vec![[0.0, 0.0], [0.25, 0.0]]);
     }
 }

@@ -3,7 +3,7 @@
 //! for the same points would cost (paper supp. Table 1: a visual-matching map stores
 //! descriptors on top of the same 3D points and cameras).
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use anyhow::Context;
@@ -108,7 +108,8 @@ fn index_by_id(ids: &[u64]) -> anyhow::Result<BTreeMap<u64, u32>> {
 
 /// Encodes a scene as a map blob: every 3D point with at least one observation (in id
 /// order), every camera (in id order), and every image as a view with the distinct points
-/// it observes.
+/// it observes, ranked as a capped detector keeps them ([`crate::scene::Image::observed_points`]), so the
+/// device's "first `capacity`" rule keeps the best ones.
 pub fn build_map(scene: &Scene) -> anyhow::Result<Vec<u8>> {
     let point_ids = mapped_point_ids(scene);
     let point_index = index_by_id(&point_ids)?;
@@ -130,12 +131,10 @@ pub fn build_map(scene: &Scene) -> anyhow::Result<Vec<u8>> {
         .images
         .values()
         .map(|image| {
-            let mut seen = BTreeSet::new();
             image
-                .keypoints
+                .observed_points()
                 .iter()
-                .filter_map(|k| k.point3d.and_then(|id| point_index.get(&id).copied()))
-                .filter(|&i| seen.insert(i))
+                .filter_map(|id| point_index.get(id).copied())
                 .collect()
         })
         .collect();

@@ -6,14 +6,15 @@
 //! Per query image:
 //! - keypoints: all its 2D points, triangulated or not (the untriangulated ones are the
 //!   real outliers), exact duplicates removed, converted to bearing vectors through its
-//!   camera (pixel -> `K^-1` -> undistortion), at most `max_keypoints` by a seeded subsample;
+//!   camera (pixel -> `K^-1` -> undistortion), at most `max_keypoints`: those a detector
+//!   capped at that number keeps ([`Image::ranked_keypoints`], larger scales first);
 //! - co-visible views: the `k` other images sharing the most 3D points with it, among those
 //!   whose overlap (shared points / points seen by the query) is at least `min_overlap`;
 //!   queries with fewer than `min_views` such views are dropped;
-//! - per view: the 3D points it observes, in the order the map stores them (the order of
-//!   the view's keypoints), those in front of it, at most `max_points` evenly spread over
-//!   that list (the core's [`view_point_bearings`], so evaluation sees exactly the points
-//!   the device matches), as bearing vectors in that view (paper eq. 1);
+//! - per view: the 3D points it observes, in the order the map stores them (the rank of the
+//!   view's keypoints, [`Image::observed_points`]), the first `max_points` of those in front
+//!   of it (the core's [`view_point_bearings`], so evaluation sees exactly the points the
+//!   device matches), as bearing vectors in that view (paper eq. 1);
 //! - ground truth: the view's points projected with the true query pose onto the query's
 //!   normalised plane, matched to the keypoints by mutual nearest neighbours closer than
 //!   `gt_threshold`.
@@ -29,8 +30,7 @@ use serde::Serialize;
 
 use crate::scene::{Image, ImageId, PointId, Scene};
 
-/// Seed stream of the query selection; image ids are `u32`, so no per-image stream
-/// (`[image_id]`) can equal it.
+/// Seed stream of the query selection, the protocol's only random choice.
 const QUERY_SELECTION_STREAM: u64 = u64::MAX;
 
 /// Parameters of the protocol (paper values by default).
@@ -45,10 +45,10 @@ pub struct ProtocolParams {
     /// Mutual-nearest-neighbour distance under which a keypoint and a projected 3D point
     /// are a ground-truth match, on the normalised image plane.
     pub gt_threshold: f64,
-    /// Cap on query keypoints.
+    /// Cap on query keypoints (those a detector capped at this number keeps).
     pub max_keypoints: usize,
-    /// Cap on the 3D points of one view (evenly spread over those in front of it, as on
-    /// the device).
+    /// Cap on the 3D points of one view (the first ones in front of it, in the order the
+    /// map stores them, as on the device).
     pub max_points: usize,
     /// Queries sampled per scene.
     pub queries_per_scene: usize,
@@ -183,17 +183,6 @@ pub struct CoVisibleView {
     pub overlap: f64,
 }
 
-/// Distinct 3D points an image observes, in keypoint order.
-fn observed_points(image: &Image) -> Vec<PointId> {
-    let mut seen = BTreeSet::new();
-    image
-        .keypoints
-        .iter()
-        .filter_map(|k| k.point3d)
-        .filter(|id| seen.insert(*id))
-        .collect()
-}
-
 /// The top-`k` other images ranked by 3D points shared with `query` (ties by id), among
 /// those with overlap at least `min_overlap`. The query itself is never a view.
 pub fn co_visible_views(
@@ -201,7 +190,7 @@ pub fn co_visible_views(
     query: &Image,
     params: &ProtocolParams,
 ) -> Vec<CoVisibleView> {
-    let points = observed_points(query);
+    let points = query.observed_points();
     if points.is_empty() {
         return Vec::new();
     }
@@ -282,50 +271,48 @@ pub fn query_sample(
     })
 }
 
-/// All keypoints of the image, exact duplicates merged (the first position kept, with the
-/// 3D point of whichever copy has one), converted to bearing vectors (keypoints whose
-/// undistortion fails are dropped), and capped by a seeded subsample that keeps their
-/// original order.
+/// The keypoints a detector capped at `max_keypoints` would give (paper supp. "Keypoint
+/// Number Control"): the image's keypoints in [`Image::ranked_keypoints`] order, exact
+/// duplicates merged (the best-ranked copy kept, with the 3D point of whichever copy has
+/// one), converted to bearing vectors (keypoints whose undistortion fails are dropped), the
+/// first `max_keypoints` of them, returned in stored order.
 fn query_keypoints(image: &Image, camera: &Camera, params: &ProtocolParams) -> QueryKeypoints {
-    let mut first_of: HashMap<(u64, u64), usize> = HashMap::new();
+    let mut slot_of: HashMap<(u64, u64), usize> = HashMap::new();
     let mut unique: Vec<(usize, Option<PointId>)> = Vec::new();
-    for (index, keypoint) in image.keypoints.iter().enumerate() {
+    for (index, keypoint) in image.ranked_keypoints() {
         let key = (keypoint.pixel[0].to_bits(), keypoint.pixel[1].to_bits());
-        match first_of.get(&key) {
+        match slot_of.get(&key) {
             Some(&slot) => {
                 let annotation = &mut unique[slot].1;
                 *annotation = annotation.or(keypoint.point3d);
             }
             None => {
-                first_of.insert(key, unique.len());
+                slot_of.insert(key, unique.len());
                 unique.push((index, keypoint.point3d));
             }
         }
     }
-    let usable: Vec<([f64; 2], [f64; 2], Option<PointId>)> = unique
+    let mut kept: Vec<(usize, [f64; 2], Option<PointId>)> = unique
         .into_iter()
         .filter_map(|(index, point3d)| {
-            let pixel = image.keypoints[index].pixel;
-            let bearing = camera.pixel_to_bearing(pixel).ok()?;
-            Some((pixel, bearing, point3d))
+            let bearing = camera.pixel_to_bearing(image.keypoints[index].pixel).ok()?;
+            Some((index, bearing, point3d))
         })
+        .take(params.max_keypoints)
         .collect();
-    let mut rng = Pcg64Mcg::seed_from_u64(derive_seed(params.seed, &[u64::from(image.id)]));
-    let mut chosen = subsample(&mut rng, usable.len(), params.max_keypoints);
-    chosen.sort_unstable();
+    kept.sort_unstable_by_key(|&(index, _, _)| index);
     let mut keypoints = QueryKeypoints::default();
-    for i in chosen {
-        let (pixel, bearing, point3d) = usable[i];
-        keypoints.pixels.push(pixel);
+    for (index, bearing, point3d) in kept {
+        keypoints.pixels.push(image.keypoints[index].pixel);
         keypoints.bearings.push(bearing);
         keypoints.point3d.push(point3d);
     }
     keypoints
 }
 
-/// The view's 3D points as the device selects them ([`view_point_bearings`]: in stored
-/// order, in front of the view, at most `max_points` evenly spread), as bearing vectors in
-/// the view, with the ground truth against the query keypoints.
+/// The view's 3D points as the device selects them ([`view_point_bearings`]: the first
+/// `max_points` in front of the view, in the map's order), as bearing vectors in the view,
+/// with the ground truth against the query keypoints.
 fn view_sample(
     scene: &Scene,
     query: &Image,
@@ -334,7 +321,7 @@ fn view_sample(
     params: &ProtocolParams,
 ) -> Option<ViewSample> {
     let image = scene.images.get(&view.image_id)?;
-    let observed = observed_points(image).into_iter().filter_map(|id| {
+    let observed = image.observed_points().into_iter().filter_map(|id| {
         let xyz = scene.points.get(&id)?.xyz;
         Some(((id, xyz), [xyz.x, xyz.y, xyz.z]))
     });
@@ -870,13 +857,14 @@ mod tests {
     }
 
     #[test]
-    fn caps_and_duplicates_are_applied_reproducibly() {
+    fn caps_keep_the_best_ranked_keypoints_and_points() {
         let scene = tracks_scene(&[
             (1, &[0, 1, 2, 3, 4, 5, 6, 7, 8, 9]),
             (2, &[0, 1, 2, 3, 4, 5, 6, 7]),
         ]);
         let mut duplicated = scene.clone();
         let image = duplicated.images.get_mut(&1).unwrap();
+        // An untriangulated copy of keypoint 3 (point 2), stored last: it ranks first.
         let copy = Keypoint {
             point3d: None,
             ..image.keypoints[3]
@@ -896,11 +884,15 @@ mod tests {
             query_sample(&duplicated, 1, &full).unwrap().keypoints.len(),
             11
         );
-        let first = query_sample(&duplicated, 1, &params).unwrap();
-        assert_eq!(first.keypoints.len(), 6);
-        assert_eq!(first.views[0].point_ids.len(), 5);
-        assert_eq!(query_sample(&duplicated, 1, &params).unwrap(), first);
+        let capped = query_sample(&duplicated, 1, &params).unwrap();
+        // The six last stored keypoints, in stored order; the copy carries point 2.
+        let expected: Vec<Option<PointId>> = [5, 6, 7, 8, 9, 2].map(Some).to_vec();
+        assert_eq!(capped.keypoints.point3d, expected);
+        assert_eq!(capped.keypoints.pixels[5], copy.pixel);
+        // The view's points, best ranked (last observed) first.
+        assert_eq!(capped.views[0].point_ids, vec![7, 6, 5, 4, 3]);
+        // The caps draw nothing: another seed gives the same sample.
         let other_seed = ProtocolParams { seed: 1, ..params };
-        assert_ne!(query_sample(&duplicated, 1, &other_seed).unwrap(), first);
+        assert_eq!(query_sample(&duplicated, 1, &other_seed).unwrap(), capped);
     }
 }

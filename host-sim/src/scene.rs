@@ -5,7 +5,7 @@
 //! Conventions (COLMAP's): poses map world to camera, `x_cam = R x + t`; the camera looks
 //! along +z; pixels have their origin at the top-left corner with y pointing down.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
 use gomatch::{Camera, Pose};
@@ -40,11 +40,31 @@ pub struct Image {
     pub camera_id: CameraId,
     /// World-to-camera pose.
     pub pose: Pose,
-    /// All keypoints, triangulated or not.
+    /// All keypoints, triangulated or not, in the order the source model stores them.
     pub keypoints: Vec<Keypoint>,
 }
 
 impl Image {
+    /// The keypoints with their indices in the order a detector capped at N keypoints
+    /// keeps them, best first: the reverse stored order. A capped SIFT detector keeps its
+    /// larger-scale features (COLMAP's `max_num_features`), and the VLFeat extractors
+    /// behind COLMAP and openMVG models emit keypoints octave by octave, fine to coarse.
+    /// (BAL and Bundler files store no keypoint order and the simulator shuffles, so there
+    /// the rank is arbitrary.)
+    pub fn ranked_keypoints(&self) -> impl Iterator<Item = (usize, &Keypoint)> {
+        self.keypoints.iter().enumerate().rev()
+    }
+
+    /// Distinct 3D points the image observes, in [`Image::ranked_keypoints`] order (a
+    /// point seen at several keypoints comes at its best rank).
+    pub fn observed_points(&self) -> Vec<PointId> {
+        let mut seen = BTreeSet::new();
+        self.ranked_keypoints()
+            .filter_map(|(_, k)| k.point3d)
+            .filter(|id| seen.insert(*id))
+            .collect()
+    }
+
     /// Number of keypoints that observe a 3D point.
     pub fn triangulated_count(&self) -> usize {
         self.keypoints
