@@ -64,7 +64,8 @@ pub struct Args {
     /// Queries sampled from the scene.
     #[arg(long, default_value_t = 500)]
     pub queries: usize,
-    /// Seed of the protocol's random choices.
+    /// Seed of the protocol's query selection and of RANSAC's sampling (0: the device's
+    /// default RANSAC seed).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Cap on RANSAC's minimal samples per query (the localizer's default; the adaptive
@@ -879,6 +880,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         localizer: LocalizerConfig {
             ransac: RansacConfig {
                 max_iterations: args.ransac_iterations,
+                seed: args.seed,
                 ..RansacConfig::new()
             },
             ..LocalizerConfig::new()

@@ -2,8 +2,9 @@
 # Ships a trained checkpoint into models/ and measures it the way the model card reports it.
 #
 #   tools/train/ship_model.sh RUN/last.safetensors [QUERIES]
-#   SEEDS="1 2 3" (default): further protocol seeds evaluated beside seed 0 (RANSAC and keypoint
-#   draws change with the seed; their mean is steadier than one seed on 56 queries)
+#   SEEDS="1 2 3" (default): further protocol seeds evaluated beside seed 0 (RANSAC's sampling and, on
+#   scenes with more queries than asked for, the query draw change with the seed; their mean is
+#   steadier than one seed on 56 queries)
 #
 # 1. copies the f32 export to models/gomatch.safetensors;
 # 2. converts it with `gomatch-tools convert` to models/gomatch-{f32,f16,int8}.bin;
