@@ -13,7 +13,7 @@ use gomatch::map::{
     VIEW_BYTES,
 };
 
-use crate::scene::{Scene, SceneSource};
+use crate::scene::{ImageId, Keypoint, Scene, SceneSource};
 
 /// Bytes of one SIFT descriptor (128 x u8).
 pub const SIFT_DESCRIPTOR_BYTES: usize = 128;
@@ -35,6 +35,9 @@ pub enum MapCommand {
     Build(BuildArgs),
     /// Print the storage breakdown of a map blob.
     Stats(StatsArgs),
+    /// Print the triangulated share per block of each image's stored keypoints: the
+    /// evidence for the rank `build` stores view points in.
+    Rank(RankArgs),
 }
 
 /// Arguments of `map build`.
@@ -82,6 +85,78 @@ pub struct StatsArgs {
     pub map: PathBuf,
 }
 
+/// Arguments of `map rank`.
+#[derive(Debug, Clone, ClapArgs)]
+pub struct RankArgs {
+    /// The model to inspect.
+    #[command(flatten)]
+    pub source: ModelArgs,
+    /// Keypoints per block (the protocol's cap).
+    #[arg(long, default_value_t = 1024)]
+    pub block: usize,
+}
+
+/// Share of `keypoints` that observe a 3D point (0 for none).
+fn triangulated_share(keypoints: &[Keypoint]) -> f64 {
+    let triangulated = keypoints.iter().filter(|k| k.point3d.is_some()).count();
+    triangulated as f64 / keypoints.len().max(1) as f64
+}
+
+/// Triangulated share of each consecutive block of `block` stored keypoints (the last
+/// block may be shorter).
+pub fn block_shares(keypoints: &[Keypoint], block: usize) -> Vec<f64> {
+    keypoints
+        .chunks(block.max(1))
+        .map(triangulated_share)
+        .collect()
+}
+
+/// Per image with more than `block` keypoints: its id and the triangulated shares of its
+/// first and last `block` stored keypoints. A higher share at the end supports
+/// [`crate::scene::Image::ranked_keypoints`]: larger-scale, more repeatable detections
+/// stored last.
+pub fn first_and_last_shares(scene: &Scene, block: usize) -> Vec<(ImageId, f64, f64)> {
+    scene
+        .images
+        .values()
+        .filter(|image| image.keypoints.len() > block)
+        .map(|image| {
+            let keypoints = &image.keypoints;
+            let last = &keypoints[keypoints.len() - block..];
+            (
+                image.id,
+                triangulated_share(&keypoints[..block]),
+                triangulated_share(last),
+            )
+        })
+        .collect()
+}
+
+/// Prints [`block_shares`] per capped image and the mean [`first_and_last_shares`].
+fn print_rank(scene: &Scene, block: usize) {
+    let capped = first_and_last_shares(scene, block);
+    for (id, _, _) in &capped {
+        let keypoints = &scene.images[id].keypoints;
+        let shares: Vec<String> = block_shares(keypoints, block)
+            .iter()
+            .map(|s| format!("{s:.2}"))
+            .collect();
+        let (count, shares) = (keypoints.len(), shares.join(" "));
+        println!("image {id}: {count} keypoints, blocks {shares}");
+    }
+    if capped.is_empty() {
+        println!("no image has more than {block} keypoints");
+        return;
+    }
+    let n = capped.len() as f64;
+    let first = capped.iter().map(|c| c.1).sum::<f64>() / n;
+    let last = capped.iter().map(|c| c.2).sum::<f64>() / n;
+    println!(
+        "{} images: triangulated share of the first {block} keypoints {first:.3}, of the last {block} {last:.3}",
+        capped.len()
+    );
+}
+
 /// The ids of the 3D points a map blob of the scene holds, in blob order: those with at
 /// least one observation, in id order.
 fn mapped_point_ids(scene: &Scene) -> Vec<u64> {
@@ -108,8 +183,9 @@ fn index_by_id(ids: &[u64]) -> anyhow::Result<BTreeMap<u64, u32>> {
 
 /// Encodes a scene as a map blob: every 3D point with at least one observation (in id
 /// order), every camera (in id order), and every image as a view with the distinct points
-/// it observes, ranked as a capped detector keeps them ([`crate::scene::Image::observed_points`]), so the
-/// device's "first `capacity`" rule keeps the best ones.
+/// it observes, ranked as a capped detector keeps them
+/// ([`crate::scene::Image::observed_points`]), so the device's "first `capacity`" rule
+/// keeps the best ones.
 pub fn build_map(scene: &Scene) -> anyhow::Result<Vec<u8>> {
     let point_ids = mapped_point_ids(scene);
     let point_index = index_by_id(&point_ids)?;
@@ -280,6 +356,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 .with_context(|| format!("decoding {}", stats.map.display()))?;
             print_stats(&StorageBreakdown::of(&map, blob.len()));
         }
+        MapCommand::Rank(rank) => print_rank(&rank.source.source()?.load()?, rank.block),
     }
     Ok(())
 }

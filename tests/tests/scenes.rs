@@ -320,3 +320,29 @@ fn protocol_ground_truth_on_synthetic_scenes_follows_the_triangulation() {
         );
     }
 }
+
+/// `map rank`'s shares: per block of stored keypoints, and on sceaux the evidence behind the
+/// protocol's ranked caps (keypoints stored last are triangulated more often).
+#[test]
+fn sceaux_keypoints_stored_last_are_triangulated_more_often() {
+    use gomatch_sim::map::{block_shares, first_and_last_shares};
+    use gomatch_sim::scene::Keypoint;
+
+    let keypoints: Vec<Keypoint> = [None, Some(3), Some(4), None, Some(7)]
+        .map(|point3d| Keypoint {
+            pixel: [0.0, 0.0],
+            point3d,
+        })
+        .to_vec();
+    assert_eq!(block_shares(&keypoints, 2), vec![0.5, 0.5, 1.0]);
+
+    let Some(data) = shared_data() else { return };
+    let sceaux = SceneSource::Colmap(data.join("colmap/sceaux"))
+        .load()
+        .unwrap();
+    let shares = first_and_last_shares(&sceaux, 1024);
+    assert_eq!(shares.len(), 11);
+    let mean = |f: fn(&(u32, f64, f64)) -> f64| shares.iter().map(f).sum::<f64>() / 11.0;
+    let (first, last) = (mean(|s| s.1), mean(|s| s.2));
+    assert!(last > first + 0.15, "first {first}, last {last}");
+}
