@@ -51,3 +51,8 @@ pub use pose::Pose;
 pub use ransac::{estimate_pose, PnpEstimate, PnpWorkspace, RansacConfig};
 pub use sinkhorn::Match;
 pub use weights::{Model, ModelConfig, Precision};
+
+/// The README's firmware example, compiled and run as a doctest.
+#[cfg(doctest)]
+#[doc = include_str!("../../README.md")]
+pub struct ReadmeDoctests;

@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Create (or reuse) the trainer's virtualenv and install requirements.txt only when something is missing.
 # The venv path defaults to ~/.cache/gomatch-venv and can be overridden with GOMATCH_VENV.
+# GOMATCH_TORCH_INDEX=URL installs torch from that wheel index (e.g. PyTorch's CPU-only index, ~200 MB instead of
+# PyPI's ~5 GB wheel with CUDA libraries) when the machine reaches it; PyPI stays the index of everything else.
 # Idempotent and silent when everything is already installed; prints the venv path on stdout.
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
@@ -34,6 +36,10 @@ PY
 
 if [ -n "$missing" ]; then
     echo "setup_venv: installing $missing" >&2
+    if [ -n "${GOMATCH_TORCH_INDEX:-}" ]; then
+        "$venv/bin/python" -m pip install --quiet --disable-pip-version-check --index-url "$GOMATCH_TORCH_INDEX" \
+            "$(grep -E '^torch==' "$req")" >&2
+    fi
     "$venv/bin/python" -m pip install --quiet --disable-pip-version-check -r "$req" >&2
 fi
 echo "$venv"
