@@ -336,16 +336,16 @@ fn print_stats(s: &StorageBreakdown) {
 
 /// Prints how many observations the localizer's projection rule skips.
 fn print_audit(audit: &ProjectionAudit) {
+    let ratio = |r: Option<f64>| r.map_or("none".to_string(), |r| format!("{r:.2e}"));
     println!(
-        "projection rule (depth >= {MIN_DEPTH_RATIO} x the view's median depth, |bearing| <= {MAX_BEARING}): {} of {} observations skipped ({} at or behind the camera, {} too close, {} off axis); closest kept: {} x the median depth",
+        "projection rule (depth >= {MIN_DEPTH_RATIO} x the view's median depth, |bearing| <= {MAX_BEARING}): {} of {} observations skipped ({} at or behind the camera, {} too close, {} off axis); relative depth of the farthest too close: {}, of the closest kept: {}",
         audit.behind + audit.too_close + audit.off_axis,
         audit.observations,
         audit.behind,
         audit.too_close,
         audit.off_axis,
-        audit
-            .closest_kept_ratio
-            .map_or("none".to_string(), |r| format!("{r:.4}")),
+        ratio(audit.farthest_refused_ratio),
+        ratio(audit.closest_kept_ratio),
     );
 }
 

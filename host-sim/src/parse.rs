@@ -205,6 +205,7 @@ impl<'a> ByteReader<'a> {
 /// Whitespace-separated tokens of a text file, with the line each comes from, read lazily
 /// (no per-token storage); the count of tokens left bounds what a declared record count
 /// may reserve ([`Tokens::count`]).
+#[derive(Debug, Clone)]
 pub struct Tokens<'a> {
     /// The text after the last token read.
     rest: &'a str,

@@ -396,6 +396,8 @@ pub struct ProjectionAudit {
     /// accepts (`None` without one): the margin of the genuine observations over
     /// [`gomatch::pose::MIN_DEPTH_RATIO`].
     pub closest_kept_ratio: Option<f64>,
+    /// Largest relative depth of an observation refused as too close (`None` without one).
+    pub farthest_refused_ratio: Option<f64>,
 }
 
 /// Audits every observation of the scene (each image's distinct observed points) under
@@ -414,7 +416,12 @@ pub fn audit_projections(scene: &Scene, max_points: usize) -> ProjectionAudit {
                     *closest = closest.min(ratio);
                 }
                 Err(Unusable::Behind) => audit.behind += 1,
-                Err(Unusable::TooClose) => audit.too_close += 1,
+                Err(Unusable::TooClose) => {
+                    audit.too_close += 1;
+                    let ratio = image.pose.transform(&xyz).z / reference;
+                    let farthest = audit.farthest_refused_ratio.get_or_insert(ratio);
+                    *farthest = farthest.max(ratio);
+                }
                 Err(Unusable::OffAxis) => audit.off_axis += 1,
             }
         }
