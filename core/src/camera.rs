@@ -169,6 +169,9 @@ impl Camera {
     }
 
     /// Bearing vector `(x/z, y/z)` of a pixel: `K^-1` followed by iterative undistortion.
+    /// A pixel beyond the distortion's fold ([`Self::invertible_radius`]) has no unique
+    /// bearing: [`Error::DistortionNotInvertible`]. Errors name keypoint 0; callers
+    /// converting a list put in the index.
     pub fn pixel_to_bearing(&self, pixel: [f64; 2]) -> Result<[f64; 2]> {
         if !pixel[0].is_finite() || !pixel[1].is_finite() {
             return Err(Error::NonFinite {
@@ -180,7 +183,26 @@ impl Camera {
             (pixel[0] - self.principal[0]) / self.focal[0],
             (pixel[1] - self.principal[1]) / self.focal[1],
         ];
+        let radius = libm::hypot(distorted[0], distorted[1]);
+        if radius >= self.invertible_radius() {
+            return Err(Error::DistortionNotInvertible { index: 0 });
+        }
         self.undistort(distorted)
+    }
+
+    /// Distorted radius on the normalised plane up to which the radial distortion
+    /// `r (1 + k1 r^2 + k2 r^4)` is increasing, hence invertible: its value at the first
+    /// zero of its derivative `1 + 3 k1 r^2 + 5 k2 r^4`, infinite when there is none. A
+    /// distorted point farther out either has no undistorted point or several (the lens
+    /// model folds back), so any bearing found for it is arbitrary; an OPENCV camera with
+    /// `k1 = -1e6, k2 = 1e6` folds at 3.9e-4, squeezing a whole image into a tiny cone.
+    pub fn invertible_radius(&self) -> f64 {
+        let [k1, k2, _, _] = self.distortion;
+        let Some(s) = smallest_positive_root(5.0 * k2, 3.0 * k1, 1.0) else {
+            return f64::INFINITY;
+        };
+        let r = libm::sqrt(s);
+        r * (1.0 + k1 * s + k2 * s * s)
     }
 
     /// Pixel of a bearing vector `(x/z, y/z)`: distortion followed by `K`.
@@ -235,7 +257,7 @@ impl Camera {
             let r = [f[0] - distorted[0], f[1] - distorted[1]];
             let det = a * d - b * c;
             if !det.is_finite() || det.abs() < 1e-12 {
-                return Err(Error::UndistortionDidNotConverge);
+                return Err(Error::UndistortionDidNotConverge { index: 0 });
             }
             let step = [(d * r[0] - b * r[1]) / det, (a * r[1] - c * r[0]) / det];
             x = [x[0] - step[0], x[1] - step[1]];
@@ -243,8 +265,27 @@ impl Camera {
                 return Ok(x);
             }
         }
-        Err(Error::UndistortionDidNotConverge)
+        Err(Error::UndistortionDidNotConverge { index: 0 })
     }
+}
+
+/// Smallest positive root of `a s^2 + b s + c` (`c = 1` here, so 0 is never a root).
+fn smallest_positive_root(a: f64, b: f64, c: f64) -> Option<f64> {
+    if a == 0.0 {
+        let s = -c / b;
+        return (s > 0.0 && s.is_finite()).then_some(s);
+    }
+    let discriminant = b * b - 4.0 * a * c;
+    if discriminant < 0.0 {
+        return None;
+    }
+    let root = libm::sqrt(discriminant);
+    // Both roots without cancellation: q = -(b + sign(b) root) / 2, s = q / a and c / q.
+    let q = -0.5 * (b + libm::copysign(root, b));
+    [q / a, c / q]
+        .into_iter()
+        .filter(|s| *s > 0.0 && s.is_finite())
+        .min_by(f64::total_cmp)
 }
 
 #[cfg(test)]
@@ -277,6 +318,38 @@ mod tests {
         let bearing = cam.pixel_to_bearing(pixel).unwrap();
         let back = cam.bearing_to_pixel(bearing).unwrap();
         assert!((back[0] - pixel[0]).abs() < 1e-8 && (back[1] - pixel[1]).abs() < 1e-8);
+    }
+
+    #[test]
+    fn distortion_is_inverted_only_up_to_its_fold() {
+        let opencv = |k1: f64, k2: f64| {
+            Camera::from_colmap(
+                CameraModel::OpenCv,
+                640,
+                480,
+                &[500.0, 500.0, 320.0, 240.0, k1, k2, 0.0, 0.0],
+            )
+            .unwrap()
+        };
+        // Issue 23's camera: the profile's derivative 1 - 3e6 s + 5e6 s^2 (s = r^2) first
+        // vanishes at s = 3.3e-7, where the profile peaks at 3.85e-4 (0.19 px).
+        let squeezed = opencv(-1e6, 1e6);
+        let fold = squeezed.invertible_radius();
+        let s: f64 = (3e6 - (9e12f64 - 20e6).sqrt()) / 10e6;
+        assert!((fold - s.sqrt() * (1.0 - 1e6 * s + 1e6 * s * s)).abs() < 1e-14);
+        assert!(fold < 4e-4);
+        assert_eq!(
+            squeezed.pixel_to_bearing([600.0, 400.0]),
+            Err(Error::DistortionNotInvertible { index: 0 })
+        );
+        assert!(squeezed.pixel_to_bearing([320.1, 240.0]).is_ok());
+        // Barrel distortion with k2 = 0 folds at r^2 = -1 / (3 k1).
+        let barrel = opencv(-0.3, 0.0);
+        let r: f64 = (1.0f64 / 0.9).sqrt();
+        assert!((barrel.invertible_radius() - r * (1.0 - 0.3 * r * r)).abs() < 1e-12);
+        // Monotonic profiles never fold.
+        assert_eq!(opencv(0.1, 0.01).invertible_radius(), f64::INFINITY);
+        assert_eq!(opencv(0.0, 0.0).invertible_radius(), f64::INFINITY);
     }
 
     #[test]

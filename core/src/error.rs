@@ -67,8 +67,23 @@ pub enum Error {
     /// Intrinsics that cannot describe a camera (non-positive focal length, unknown model,
     /// wrong parameter count).
     InvalidIntrinsics,
-    /// Iterative undistortion did not converge within its iteration cap.
-    UndistortionDidNotConverge,
+    /// Iterative undistortion of a keypoint did not converge within its iteration cap.
+    UndistortionDidNotConverge {
+        /// Index of the keypoint.
+        index: usize,
+    },
+    /// A keypoint lies beyond the radius up to which the camera's distortion is
+    /// invertible ([`crate::Camera::invertible_radius`]): its bearing would be arbitrary.
+    DistortionNotInvertible {
+        /// Index of the keypoint.
+        index: usize,
+    },
+    /// A rotation that is not one: not orthonormal with determinant +1 within
+    /// [`crate::pose::ROTATION_TOLERANCE`] (e.g. all zeros).
+    InvalidRotation {
+        /// Which input holds it.
+        input: Input,
+    },
     /// A 3D point lies at or behind the camera plane (z <= 0).
     PointBehindCamera {
         /// Index of the point.
@@ -229,7 +244,16 @@ impl fmt::Display for Error {
                 write!(f, "non-finite value in {input:?} at index {index}")
             }
             Error::InvalidIntrinsics => write!(f, "invalid camera intrinsics"),
-            Error::UndistortionDidNotConverge => write!(f, "undistortion did not converge"),
+            Error::UndistortionDidNotConverge { index } => {
+                write!(f, "undistortion of keypoint {index} did not converge")
+            }
+            Error::DistortionNotInvertible { index } => write!(
+                f,
+                "keypoint {index} lies beyond the radius where the camera's distortion is invertible"
+            ),
+            Error::InvalidRotation { input } => {
+                write!(f, "{input:?}: rotation is not orthonormal")
+            }
             Error::PointBehindCamera { index } => {
                 write!(f, "point {index} is at or behind the camera")
             }

@@ -341,9 +341,9 @@ impl From<&Error> for Rejection {
             } => Rejection::NonFiniteKeypoint {
                 index: narrow(index),
             },
-            Error::InvalidIntrinsics | Error::UndistortionDidNotConverge => {
-                Rejection::InvalidCamera
-            }
+            Error::InvalidIntrinsics
+            | Error::UndistortionDidNotConverge { .. }
+            | Error::DistortionNotInvertible { .. } => Rejection::InvalidCamera,
             Error::MapUnknownImage { image_id } => Rejection::UnknownImage { image_id },
             ref other => {
                 let mut message = heapless::String::new();

@@ -19,13 +19,14 @@
 
 use core::fmt;
 
+use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::Camera;
 use crate::error::{Error, Input, Result};
 use crate::map::Map;
 use crate::matcher::Matcher;
-use crate::pose::Pose;
+use crate::pose::{Pose, ProjectionRule};
 use crate::ransac::{estimate_pose, PnpWorkspace, RansacConfig, MIN_CORRESPONDENCES};
 use crate::sinkhorn::PlanScalar;
 use crate::weights::Model;
@@ -33,37 +34,67 @@ use crate::weights::Model;
 /// Most database views one query is matched against (the paper's largest `k`).
 pub const MAX_VIEWS: usize = 10;
 
-/// Bearing vector `(x/z, y/z)` of a world point in a view (paper eq. 1), when the point
-/// can be matched from it: in front of the camera, with coordinates representable in
-/// `f32` (the matcher's input type).
-pub fn view_bearing(view_pose: &Pose, point: [f64; 3]) -> Option<[f64; 2]> {
-    let [x, y, z] = point;
-    let bearing = view_pose
-        .bearing(&nalgebra::Vector3::new(x, y, z), 0)
-        .ok()?;
-    bearing
-        .iter()
-        .all(|&v| (v as f32).is_finite())
-        .then_some(bearing)
-}
-
 /// The database points a view contributes to matching, the one rule shared by the device
 /// and the host's evaluation protocol: the first `capacity` of the view's observed points,
-/// in stored order, that have a [`view_bearing`] (paper supp. "Keypoint Number Control":
-/// database keypoints are used "up to its first 1024"). A map stores each view's points in
-/// the order a capped detector ranks them, so the first ones are those a detector limited
-/// to `capacity` keypoints would have kept. Yields each point's tag and its bearing.
+/// in stored order, that have a bearing under the view's [`ProjectionRule`] (paper supp.
+/// "Keypoint Number Control": database keypoints are used "up to its first 1024"). A map
+/// stores each view's points in the order a capped detector ranks them, so the first ones
+/// are those a detector limited to `capacity` keypoints would have kept. The rule's
+/// reference depth is the median depth of the first `depths.len()` points in front of the
+/// view (`depths` is scratch; pass `capacity` slots). Yields each point's tag and its
+/// bearing, and counts the points it skips.
 pub fn view_point_bearings<T, I>(
     view_pose: Pose,
     points: I,
     capacity: usize,
-) -> impl Iterator<Item = (T, [f64; 2])>
+    depths: &mut [f64],
+) -> ViewPointBearings<I>
 where
-    I: Iterator<Item = (T, [f64; 3])>,
+    I: Iterator<Item = (T, [f64; 3])> + Clone,
 {
-    points
-        .filter_map(move |(tag, p)| Some((tag, view_bearing(&view_pose, p)?)))
-        .take(capacity)
+    let rule = ProjectionRule::of_camera(&view_pose, points.clone().map(|(_, p)| p), depths);
+    ViewPointBearings {
+        pose: view_pose,
+        rule,
+        points,
+        remaining: capacity,
+        skipped: 0,
+    }
+}
+
+/// The iterator of [`view_point_bearings`].
+#[derive(Debug, Clone)]
+pub struct ViewPointBearings<I> {
+    pose: Pose,
+    rule: ProjectionRule,
+    points: I,
+    remaining: usize,
+    skipped: usize,
+}
+
+impl<I> ViewPointBearings<I> {
+    /// Points passed over so far because the view's [`ProjectionRule`] refuses them.
+    pub fn skipped(&self) -> usize {
+        self.skipped
+    }
+}
+
+impl<T, I: Iterator<Item = (T, [f64; 3])>> Iterator for ViewPointBearings<I> {
+    type Item = (T, [f64; 2]);
+
+    fn next(&mut self) -> Option<Self::Item> {
+        while self.remaining > 0 {
+            let (tag, [x, y, z]) = self.points.next()?;
+            match self.rule.bearing(&self.pose, &Vector3::new(x, y, z)) {
+                Ok(bearing) => {
+                    self.remaining -= 1;
+                    return Some((tag, bearing));
+                }
+                Err(_) => self.skipped += 1,
+            }
+        }
+        None
+    }
 }
 
 /// A query: keypoints in pixels (at most the localizer's capacity; the caller caps) and
@@ -484,14 +515,20 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             .network_input
             .iter_mut()
             .zip(self.view_points.iter_mut());
-        for ((index, bearing), (slot, point)) in view_point_bearings(pose, points, N).zip(slots) {
+        // The pose solver's input is filled by the merge, after every view: until then
+        // it is the depth scratch of the view's projection rule.
+        let depths = self.bearings.as_flattened_mut();
+        let mut chosen =
+            view_point_bearings(pose, points, N, depths.get_mut(..N).unwrap_or(&mut []));
+        for ((index, bearing), (slot, point)) in chosen.by_ref().zip(slots) {
             *slot = [bearing[0] as f32, bearing[1] as f32];
             *point = index;
             len += 1;
         }
+        let refused = chosen.skipped();
         let db = self.network_input.get(..len).unwrap_or(&[]);
         if len < self.matcher.min_points() {
-            log::debug!("map view {view}: {len} points in front, skipped");
+            log::debug!("map view {view}: {len} usable points ({refused} refused), skipped");
             return Ok(false);
         }
         let set = self.matcher.match_view(model, db)?;
@@ -511,7 +548,7 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         }
         counts.classified += accepted;
         log::debug!(
-            "map view {view}: {len} points, {} mutual matches, {accepted} accepted, {} Sinkhorn iterations",
+            "map view {view}: {len} points ({refused} refused by the projection rule), {} mutual matches, {accepted} accepted, {} Sinkhorn iterations",
             set.len(),
             set.sinkhorn_iterations()
         );
@@ -597,7 +634,9 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
 }
 
 /// Bearing vector of a query keypoint; a non-finite pixel, or one whose `f32` bearing
-/// would not be finite, is [`Error::NonFinite`] with its index.
+/// would not be finite, is [`Error::NonFinite`] with its index; the camera's
+/// [`Error::DistortionNotInvertible`] and [`Error::UndistortionDidNotConverge`] get the
+/// index too.
 fn keypoint_bearing(camera: &Camera, pixel: [f32; 2], index: usize) -> Result<[f64; 2]> {
     let non_finite = Error::NonFinite {
         input: Input::Keypoints,
@@ -606,7 +645,13 @@ fn keypoint_bearing(camera: &Camera, pixel: [f32; 2], index: usize) -> Result<[f
     if !pixel.iter().all(|v| v.is_finite()) {
         return Err(non_finite);
     }
-    let b = camera.pixel_to_bearing([f64::from(pixel[0]), f64::from(pixel[1])])?;
+    let b = camera
+        .pixel_to_bearing([f64::from(pixel[0]), f64::from(pixel[1])])
+        .map_err(|error| match error {
+            Error::UndistortionDidNotConverge { .. } => Error::UndistortionDidNotConverge { index },
+            Error::DistortionNotInvertible { .. } => Error::DistortionNotInvertible { index },
+            other => other,
+        })?;
     if !b.iter().all(|&v| (v as f32).is_finite()) {
         return Err(non_finite);
     }
@@ -653,6 +698,7 @@ fn select_views(map: &Map<'_>, views: ViewSelection<'_>) -> Result<heapless::Vec
             k,
             max_angle_deg,
         } => {
+            prior.check()?;
             if k > MAX_VIEWS {
                 return Err(Error::CapacityExceeded {
                     capacity: MAX_VIEWS,
@@ -864,6 +910,32 @@ mod tests {
                     requested: 11
                 })
             );
+            // Issue 23: a prior whose rotation is all zeros.
+            let zero_prior = ViewSelection::NearPrior {
+                prior: Pose::new(
+                    Rotation3::from_matrix_unchecked(nalgebra::Matrix3::zeros()),
+                    Vector3::zeros(),
+                ),
+                k: 2,
+                max_angle_deg: 30.0,
+            };
+            assert_eq!(
+                run(&good[..20], camera(), zero_prior),
+                Err(Error::InvalidRotation { input: Input::Pose })
+            );
+            // Issue 23: a distortion that folds 0.19 px from the principal point would
+            // squeeze every keypoint's bearing into a tiny cone; keypoint 0 is beyond it.
+            let squeezed = Camera::from_colmap(
+                CameraModel::OpenCv,
+                640,
+                480,
+                &[500.0, 500.0, 320.0, 240.0, -1e6, 1e6, 0.0, 0.0],
+            )
+            .expect("finite intrinsics");
+            assert_eq!(
+                run(&good[..20], squeezed, ids),
+                Err(Error::DistortionNotInvertible { index: 0 })
+            );
         });
     }
 
@@ -1019,7 +1091,7 @@ mod tests {
     }
 
     #[test]
-    fn view_points_are_the_first_ones_in_front() {
+    fn view_points_are_the_first_ones_the_projection_rule_allows() {
         let behind = [0.0, 0.0, -1.0];
         let ahead = |i: f64| [i, 0.0, 4.0];
         let points = [
@@ -1031,23 +1103,34 @@ mod tests {
             (5, [1e39, 0.0, 1.0]),
             (6, ahead(4.0)),
             (7, ahead(5.0)),
+            // At the camera centre (depth far below 1e-3 of the median, 4).
+            (8, [0.0, 0.0, 2.3e-10]),
+            (9, ahead(6.0)),
         ];
-        let chosen = |capacity| -> Vec<i32> {
-            view_point_bearings(Pose::identity(), points.into_iter(), capacity)
-                .map(|(tag, _)| tag)
-                .collect()
+        let mut depths = [0.0; 100];
+        let mut chosen_with = |capacity| -> (Vec<i32>, usize) {
+            let mut chosen = view_point_bearings(
+                Pose::identity(),
+                points.into_iter(),
+                capacity,
+                &mut depths[..capacity],
+            );
+            let tags = chosen.by_ref().map(|(tag, _)| tag).collect();
+            (tags, chosen.skipped())
         };
-        // Six points are in front with an f32 bearing; all fit in 6 or more.
-        assert_eq!(chosen(6), std::vec![0, 2, 3, 4, 6, 7]);
-        assert_eq!(chosen(100), chosen(6));
-        // Fewer slots: the first usable ones, skipping those behind or overflowing.
-        assert_eq!(chosen(3), std::vec![0, 2, 3]);
-        assert_eq!(chosen(5), std::vec![0, 2, 3, 4, 6]);
-        assert_eq!(chosen(1), std::vec![0]);
-        assert!(chosen(0).is_empty());
-        let bearings: Vec<[f64; 2]> = view_point_bearings(Pose::identity(), points.into_iter(), 2)
-            .map(|(_, b)| b)
-            .collect();
+        // Seven points have a usable bearing; all fit in 7 or more; the point behind,
+        // the one far off axis and the one at the centre are skipped.
+        assert_eq!(chosen_with(7), (std::vec![0, 2, 3, 4, 6, 7, 9], 3));
+        assert_eq!(chosen_with(100), chosen_with(7));
+        // Fewer slots: the first usable ones.
+        assert_eq!(chosen_with(3), (std::vec![0, 2, 3], 1));
+        assert_eq!(chosen_with(5).0, std::vec![0, 2, 3, 4, 6]);
+        assert_eq!(chosen_with(1).0, std::vec![0]);
+        assert!(chosen_with(0).0.is_empty());
+        let bearings: Vec<[f64; 2]> =
+            view_point_bearings(Pose::identity(), points.into_iter(), 2, &mut depths[..2])
+                .map(|(_, b)| b)
+                .collect();
         assert_eq!(bearings, std::vec![[0.0, 0.0], [0.25, 0.0]]);
     }
 }

@@ -99,6 +99,42 @@ struct PayloadRef<'a> {
     view_points: &'a [u8],
 }
 
+/// An unsigned machine word the decoder's offsets are computed in: `usize`, which is
+/// `u32` on a 32-bit target such as the firmware's (the tests run the same code in `u32`).
+trait Word: Copy + TryFrom<usize> {
+    fn checked_add(self, other: Self) -> Option<Self>;
+    fn checked_mul(self, other: Self) -> Option<Self>;
+}
+
+macro_rules! word {
+    ($($t:ty),*) => {$(
+        impl Word for $t {
+            fn checked_add(self, other: Self) -> Option<Self> {
+                <$t>::checked_add(self, other)
+            }
+            fn checked_mul(self, other: Self) -> Option<Self> {
+                <$t>::checked_mul(self, other)
+            }
+        }
+    )*};
+}
+word!(u32, usize);
+
+/// Byte range of the `count` entries of `entry_bytes` bytes each from entry `first`, every
+/// step checked in the word `W`: `None` where an offset does not fit (with wrapping
+/// arithmetic a crafted `first` and `count` would pass validation and read the wrong
+/// entries).
+fn entry_range<W: Word>(
+    first: impl TryInto<W>,
+    count: impl TryInto<W>,
+    entry_bytes: usize,
+) -> Option<core::ops::Range<W>> {
+    let entry_bytes = W::try_from(entry_bytes).ok()?;
+    let first = first.try_into().ok()?;
+    let end = first.checked_add(count.try_into().ok()?)?;
+    Some(first.checked_mul(entry_bytes)?..end.checked_mul(entry_bytes)?)
+}
+
 /// A database view as stored in the map.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MapView {
@@ -237,11 +273,14 @@ impl<'a> Map<'a> {
                     limit: self.camera_count(),
                 });
             }
-            let end = view.first as usize + view.count as usize;
-            if end > observations {
+            let in_range = entry_range::<usize>(view.first, view.count, 1)
+                .filter(|entries| entries.end <= observations);
+            if in_range.is_none() {
                 return Err(Error::MapIndexOutOfRange {
                     item: MapItem::ViewPoints,
-                    index: end,
+                    index: (u64::from(view.first) + u64::from(view.count))
+                        .try_into()
+                        .unwrap_or(usize::MAX),
                     limit: observations,
                 });
             }
@@ -290,7 +329,10 @@ impl<'a> Map<'a> {
         if index >= limit {
             return Err(Self::out_of_range(MapItem::Point, index, limit));
         }
-        let read = |axis: usize| f32_at(self.points, index * POINT_BYTES + 4 * axis);
+        let read = |axis: usize| {
+            let offset = index.checked_mul(POINT_BYTES)?.checked_add(4 * axis)?;
+            f32_at(self.points, offset)
+        };
         match (read(0), read(1), read(2)) {
             (Some(x), Some(y), Some(z)) => Ok([x, y, z]),
             _ => Err(Self::out_of_range(MapItem::Point, index, limit)),
@@ -303,10 +345,8 @@ impl<'a> Map<'a> {
         if index >= limit {
             return Err(Self::out_of_range(MapItem::Camera, index, limit));
         }
-        let base = index * CAMERA_BYTES;
-        let record = self
-            .cameras
-            .get(base..base + CAMERA_BYTES)
+        let record = entry_range::<usize>(index, 1usize, CAMERA_BYTES)
+            .and_then(|range| self.cameras.get(range))
             .ok_or(Self::out_of_range(MapItem::Camera, index, limit))?;
         let model = CameraModel::from_colmap_id(i32::from(record[0]))?;
         let width = u32_at(record, 1).ok_or(Error::MapCorrupt)?;
@@ -325,10 +365,8 @@ impl<'a> Map<'a> {
         if index >= limit {
             return Err(Self::out_of_range(MapItem::View, index, limit));
         }
-        let base = index * VIEW_BYTES;
-        let record = self
-            .views
-            .get(base..base + VIEW_BYTES)
+        let record = entry_range::<usize>(index, 1usize, VIEW_BYTES)
+            .and_then(|range| self.views.get(range))
             .ok_or(Self::out_of_range(MapItem::View, index, limit))?;
         let value = |i: usize| f64_at(record, 8 + 8 * i).ok_or(Error::MapCorrupt);
         let q = [value(0)?, value(1)?, value(2)?, value(3)?];
@@ -345,13 +383,14 @@ impl<'a> Map<'a> {
     /// The point indices view `index` observes.
     pub fn view_points(&self, index: usize) -> Result<ViewPoints<'a>> {
         let view = self.view(index)?;
-        let start = view.first as usize * INDEX_BYTES;
-        let end = start + view.count as usize * INDEX_BYTES;
-        let bytes = self.view_points.get(start..end).ok_or(Self::out_of_range(
+        let out_of_range = Self::out_of_range(
             MapItem::ViewPoints,
-            end / INDEX_BYTES,
+            view.first as usize,
             self.observation_count(),
-        ))?;
+        );
+        let bytes = entry_range::<usize>(view.first, view.count, INDEX_BYTES)
+            .and_then(|range| self.view_points.get(range))
+            .ok_or(out_of_range)?;
         Ok(ViewPoints { bytes })
     }
 
@@ -847,6 +886,39 @@ mod tests {
         buffer[HEADER_BYTES] = 49;
         reseal(&mut buffer[..len]);
         assert_eq!(Map::from_bytes(&buffer[..len]), Err(Error::MapCorrupt));
+    }
+
+    #[test]
+    fn offsets_that_overflow_a_32_bit_word_are_refused() {
+        // The offsets as the firmware's 32-bit target computes them: the crafted view of
+        // issue 23 (first 0x4000_0000, count 0xC000_0005) wraps to entries 0x4000_0000..5.
+        assert_eq!(entry_range::<u32>(0x4000_0000u32, 0xC000_0005u32, 1), None);
+        assert_eq!(entry_range::<u32>(0x4000_0000u32, 1u32, INDEX_BYTES), None);
+        assert_eq!(
+            entry_range::<u32>(u32::MAX, 0u32, 1),
+            Some(u32::MAX..u32::MAX)
+        );
+        assert_eq!(entry_range::<u32>(3u32, 2u32, INDEX_BYTES), Some(12..20));
+        assert_eq!(entry_range::<usize>(3u32, 2u32, INDEX_BYTES), Some(12..20));
+        // The same view in a sealed blob is refused here too.
+        let mut buffer = [0u8; 1024];
+        let len = encode_sample(&mut buffer);
+        let (views_at, observations) = {
+            let map = Map::from_bytes(&buffer[..len]).expect("valid");
+            let at = map.views.as_ptr() as usize - buffer.as_ptr() as usize;
+            (at, map.observation_count())
+        };
+        buffer[views_at + 64..views_at + 68].copy_from_slice(&0x4000_0000u32.to_le_bytes());
+        buffer[views_at + 68..views_at + 72].copy_from_slice(&0xC000_0005u32.to_le_bytes());
+        reseal(&mut buffer[..len]);
+        assert_eq!(
+            Map::from_bytes(&buffer[..len]),
+            Err(Error::MapIndexOutOfRange {
+                item: MapItem::ViewPoints,
+                index: usize::try_from(0x1_0000_0005u64).unwrap_or(usize::MAX),
+                limit: observations,
+            })
+        );
     }
 
     #[test]

@@ -69,6 +69,28 @@ impl Pose {
         Ok(Self::new(rotation, Vector3::new(t[0], t[1], t[2])))
     }
 
+    /// Checks a pose built field by field: finite values ([`Error::NonFinite`]) and a
+    /// rotation matrix `R` with `|R^T R - I| <= ROTATION_TOLERANCE` per entry and a
+    /// positive determinant ([`Error::InvalidRotation`]).
+    pub fn check(&self) -> Result<()> {
+        let r = self.rotation.matrix();
+        if !r
+            .iter()
+            .chain(self.translation.iter())
+            .all(|v| v.is_finite())
+        {
+            return Err(Error::NonFinite {
+                input: Input::Pose,
+                index: 0,
+            });
+        }
+        let gram = r.transpose() * r - Matrix3::identity();
+        if gram.amax() > ROTATION_TOLERANCE || r.determinant() <= 0.0 {
+            return Err(Error::InvalidRotation { input: Input::Pose });
+        }
+        Ok(())
+    }
+
     /// Maps a world point into camera coordinates.
     pub fn transform(&self, x_world: &Vector3<f64>) -> Vector3<f64> {
         self.rotation * x_world + self.translation
@@ -118,12 +140,115 @@ impl Pose {
     /// Bearing vector of a world point seen from this camera (paper eq. 1):
     /// `p' = R p + t`, `[b 1] = p' / p'_z`. Points at or behind the camera plane
     /// (`p'_z <= 0`) are reported as [`Error::PointBehindCamera`] with the given index.
+    /// This is the bare projection: whether a scene point's bearing is meaningful (not at
+    /// the camera centre, not far off axis) is [`ProjectionRule`]'s call.
     pub fn bearing(&self, x_world: &Vector3<f64>, index: usize) -> Result<[f64; 2]> {
         let p = self.transform(x_world);
         if p.z <= 0.0 || !p.z.is_finite() || !p.x.is_finite() || !p.y.is_finite() {
             return Err(Error::PointBehindCamera { index });
         }
         Ok([p.x / p.z, p.y / p.z])
+    }
+}
+
+/// Largest deviation of `R^T R` from the identity, per entry, that [`Pose::check`]
+/// accepts as a rotation (poses stored in `f64` deviate by about 1e-15).
+pub const ROTATION_TOLERANCE: f64 = 1e-6;
+
+/// Smallest depth of a usable projection, as a fraction of the camera's reference depth
+/// (the median depth of the points it observes); see [`ProjectionRule`].
+pub const MIN_DEPTH_RATIO: f64 = 1e-3;
+
+/// Largest bearing coordinate, `|x/z|` and `|y/z|`, of a usable projection: 84.3 degrees
+/// off the optical axis, beyond the field of view of the camera models supported.
+pub const MAX_BEARING: f64 = 10.0;
+
+/// Why a world point has no usable bearing in a camera.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Unusable {
+    /// At or behind the camera plane, or a non-finite position.
+    Behind,
+    /// In front, but closer than the rule's minimum depth: at the camera centre, where a
+    /// bearing is arbitrary and moves by any amount with a tiny change of pose.
+    TooClose,
+    /// Beyond [`MAX_BEARING`] off the optical axis.
+    OffAxis,
+}
+
+/// The one rule that turns a world point into a bearing in a camera (paper eq. 1), shared
+/// by the localizer's view bearings, the protocol's ground truth and the reprojection
+/// metric: the point's depth must be at least [`MIN_DEPTH_RATIO`] times the camera's
+/// reference depth (the median depth of the points it observes, so the rule holds at any
+/// scene scale), and both bearing coordinates at most [`MAX_BEARING`]. A point failing it
+/// is skipped, never turned into a bearing: SfM models hold points triangulated at a
+/// camera's centre, whose bearing is arbitrary.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProjectionRule {
+    min_depth: f64,
+}
+
+impl ProjectionRule {
+    /// The rule of a camera whose reference depth is `reference_depth`; one that is not
+    /// positive and finite (a camera that sees no point) accepts no point.
+    pub fn with_reference_depth(reference_depth: f64) -> Self {
+        let usable = reference_depth > 0.0 && reference_depth.is_finite();
+        Self {
+            min_depth: if usable {
+                MIN_DEPTH_RATIO * reference_depth
+            } else {
+                f64::INFINITY
+            },
+        }
+    }
+
+    /// The rule of the camera at `pose` that observes `points`: its reference depth is
+    /// the median (the upper middle one for an even count) of the depths of the first
+    /// `depths.len()` points in front of it; `depths` is scratch space.
+    pub fn of_camera(
+        pose: &Pose,
+        points: impl Iterator<Item = [f64; 3]>,
+        depths: &mut [f64],
+    ) -> Self {
+        let in_front = points
+            .map(|[x, y, z]| pose.transform(&Vector3::new(x, y, z)).z)
+            .filter(|depth| *depth > 0.0 && depth.is_finite());
+        let mut len = 0;
+        for (slot, depth) in depths.iter_mut().zip(in_front) {
+            *slot = depth;
+            len += 1;
+        }
+        let found = depths.get_mut(..len).unwrap_or(&mut []);
+        if found.is_empty() {
+            return Self::with_reference_depth(0.0);
+        }
+        let (_, median, _) = found.select_nth_unstable_by(len / 2, f64::total_cmp);
+        Self::with_reference_depth(*median)
+    }
+
+    /// Smallest depth of a usable point, in world units (infinite when none is usable).
+    pub fn min_depth(&self) -> f64 {
+        self.min_depth
+    }
+
+    /// The bearing of `x_world` in the camera at `pose` when the rule allows it.
+    pub fn bearing(
+        &self,
+        pose: &Pose,
+        x_world: &Vector3<f64>,
+    ) -> core::result::Result<[f64; 2], Unusable> {
+        let p = pose.transform(x_world);
+        if !(p.z > 0.0 && p.iter().all(|v| v.is_finite())) {
+            return Err(Unusable::Behind);
+        }
+        if p.z < self.min_depth {
+            return Err(Unusable::TooClose);
+        }
+        let bearing = [p.x / p.z, p.y / p.z];
+        if bearing.iter().all(|b| b.abs() <= MAX_BEARING) {
+            Ok(bearing)
+        } else {
+            Err(Unusable::OffAxis)
+        }
     }
 }
 
@@ -167,6 +292,48 @@ mod tests {
             pose.bearing(&Vector3::new(1.0, 2.0, -1.0), 4),
             Err(Error::PointBehindCamera { index: 4 })
         );
+    }
+
+    #[test]
+    fn projection_rule_skips_points_at_the_centre_and_far_off_axis() {
+        let pose = sample_pose();
+        let in_camera = |x: f64, y: f64, z: f64| pose.inverse().transform(&Vector3::new(x, y, z));
+        let seen: std::vec::Vec<[f64; 3]> = [2.0, 4.0, 5.0, 7.0, 1e9]
+            .iter()
+            .chain(&[-3.0, 0.0])
+            .map(|&z| in_camera(0.1, 0.0, z).into())
+            .collect();
+        let mut depths = [0.0; 8];
+        let rule = ProjectionRule::of_camera(&pose, seen.into_iter(), &mut depths);
+        // Median of the five depths in front: 5.
+        assert!((rule.min_depth() - 5.0 * MIN_DEPTH_RATIO).abs() < 1e-12);
+        let project = |x, y, z| rule.bearing(&pose, &in_camera(x, y, z));
+        let b = project(1.0, -2.0, 4.0).unwrap();
+        assert!((b[0] - 0.25).abs() < 1e-12 && (b[1] + 0.5).abs() < 1e-12);
+        assert_eq!(project(0.0, 0.0, 2.3e-10), Err(Unusable::TooClose));
+        assert_eq!(project(0.0, 0.0, -1.0), Err(Unusable::Behind));
+        assert_eq!(project(10.5, 0.0, 1.0), Err(Unusable::OffAxis));
+        assert!(project(0.0, 9.9, 1.0).is_ok());
+        // A camera that sees nothing in front accepts nothing.
+        let blind = ProjectionRule::of_camera(&pose, core::iter::empty(), &mut depths);
+        assert_eq!(
+            blind.bearing(&pose, &in_camera(0.0, 0.0, 5.0)),
+            Err(Unusable::TooClose)
+        );
+    }
+
+    #[test]
+    fn check_refuses_matrices_that_are_no_rotation() {
+        assert_eq!(sample_pose().check(), Ok(()));
+        let with =
+            |m: Matrix3<f64>| Pose::new(Rotation3::from_matrix_unchecked(m), Vector3::zeros());
+        let invalid = Err(Error::InvalidRotation { input: Input::Pose });
+        assert_eq!(with(Matrix3::zeros()).check(), invalid);
+        assert_eq!(with(Matrix3::identity() * 1.01).check(), invalid);
+        assert_eq!(with(-Matrix3::identity()).check(), invalid);
+        let mut nan = sample_pose();
+        nan.translation.y = f64::NAN;
+        assert!(matches!(nan.check(), Err(Error::NonFinite { .. })));
     }
 
     #[test]

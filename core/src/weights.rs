@@ -431,7 +431,8 @@ impl<'a> Linear<'a> {
 }
 
 fn read_f32(bytes: &[u8], index: usize) -> Option<f32> {
-    let b = bytes.get(index * 4..index * 4 + 4)?;
+    let start = index.checked_mul(4)?;
+    let b = bytes.get(start..start.checked_add(4)?)?;
     Some(f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
 }
 
@@ -609,7 +610,7 @@ impl<'a> Model<'a> {
                     found: index,
                 });
             };
-            let linear = check_record(&record, &spec)?;
+            let linear = check_record(&record, &spec, offset)?;
             model.place(index, linear);
         }
         if !rest.is_empty() {
@@ -715,8 +716,13 @@ fn check_envelope(blob: &[u8]) -> Result<&[u8]> {
     Ok(&blob[PREAMBLE..body])
 }
 
-/// Checks one record against its expected shape and byte lengths.
-fn check_record<'a>(record: &TensorRecord<'a>, spec: &TensorSpec) -> Result<Linear<'a>> {
+/// Checks one record (at byte `offset` of the blob) against its expected shape and byte
+/// lengths.
+fn check_record<'a>(
+    record: &TensorRecord<'a>,
+    spec: &TensorSpec,
+    offset: usize,
+) -> Result<Linear<'a>> {
     let precision = record.precision;
     let (rows, cols) = (record.rows as usize, record.cols as usize);
     if rows != spec.rows || cols != spec.cols {
@@ -726,17 +732,25 @@ fn check_record<'a>(record: &TensorRecord<'a>, spec: &TensorSpec) -> Result<Line
             found: [rows, cols],
         });
     }
+    // Checked: the shape equals the specification's, but no offset may wrap on a 32-bit
+    // target whatever the configuration.
+    let bytes = |count: Option<usize>, per_entry: usize| {
+        count
+            .and_then(|c| c.checked_mul(per_entry))
+            .ok_or(Error::BlobMalformed { offset })
+    };
+    let row_values = bytes(Some(rows), 4)?;
     let lengths = [
         (
             TensorPart::Weights,
             record.weights.len(),
-            rows * cols * precision.bytes_per_weight(),
+            bytes(rows.checked_mul(cols), precision.bytes_per_weight())?,
         ),
         (
             TensorPart::Scales,
             record.scales.len(),
             if precision == Precision::Int8 {
-                rows * 4
+                row_values
             } else {
                 0
             },
@@ -744,7 +758,7 @@ fn check_record<'a>(record: &TensorRecord<'a>, spec: &TensorSpec) -> Result<Line
         (
             TensorPart::Bias,
             record.bias.len(),
-            if spec.bias { rows * 4 } else { 0 },
+            if spec.bias { row_values } else { 0 },
         ),
     ];
     for (part, found, expected) in lengths {

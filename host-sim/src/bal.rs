@@ -175,6 +175,13 @@ fn image_id(camera_index: usize, camera_count: usize) -> Result<ImageId, FormatE
     })
 }
 
+/// Tokens of one BAL camera record: Rodrigues rotation, translation, f, k1, k2.
+const CAMERA_TOKENS: usize = 9;
+/// Tokens of one BAL point record.
+const POINT_TOKENS: usize = 3;
+/// Tokens of one BAL observation record: camera, point, x, y.
+const OBSERVATION_TOKENS: usize = 4;
+
 /// Reads a BAL problem file (see the module documentation for the conversion).
 pub fn read_bal(path: &Path) -> anyhow::Result<Scene> {
     let text =
@@ -188,19 +195,11 @@ pub fn read_bal(path: &Path) -> anyhow::Result<Scene> {
 /// translation, f, k1, k2), 3 coordinates per point.
 pub fn parse_bal(text: &str, name: String) -> Result<Scene, FormatError> {
     let mut tokens = Tokens::new(text, 0);
-    let camera_count: usize = tokens.parse("the camera count")?;
-    let point_count: usize = tokens.parse("the point count")?;
-    let observation_count: usize = tokens.parse("the observation count")?;
-    // Each record is at least one token: bound the counts by the file size.
-    for count in [camera_count, point_count, observation_count] {
-        if count > text.len() {
-            return Err(FormatError::OutOfRange {
-                what: "declared record count",
-                value: count as u64,
-                limit: text.len() as u64,
-            });
-        }
-    }
+    // Each count is bounded by the records the rest of the file can hold, so that the
+    // reservations below never exceed what the file holds.
+    let camera_count = tokens.count("the camera count", CAMERA_TOKENS)?;
+    let point_count = tokens.count("the point count", POINT_TOKENS)?;
+    let observation_count = tokens.count("the observation count", OBSERVATION_TOKENS)?;
     let mut observations = Vec::with_capacity(observation_count);
     for _ in 0..observation_count {
         observations.push(Observation {

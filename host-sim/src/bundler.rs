@@ -14,6 +14,11 @@ use crate::scene::{Scene, SceneSource};
 /// First line of every Bundler v0.3 file.
 const HEADER: &str = "# Bundle file v0.3";
 
+/// Tokens of one camera record: `f k1 k2`, `R` and `t`.
+const CAMERA_TOKENS: usize = 15;
+/// Tokens of a point record without views: position, colour, view count.
+const POINT_MIN_TOKENS: usize = 7;
+
 /// Reads a Bundler v0.3 `bundle.out`.
 pub fn read_bundler(path: &Path) -> anyhow::Result<Scene> {
     let text =
@@ -34,17 +39,10 @@ pub fn parse_bundler(text: &str, name: String) -> Result<Scene, FormatError> {
         });
     }
     let mut tokens = Tokens::new(text, 1);
-    let camera_count: usize = tokens.parse("the camera count")?;
-    let point_count: usize = tokens.parse("the point count")?;
-    for count in [camera_count, point_count] {
-        if count > text.len() {
-            return Err(FormatError::OutOfRange {
-                what: "declared record count",
-                value: count as u64,
-                limit: text.len() as u64,
-            });
-        }
-    }
+    // Each count is bounded by the records the rest of the file can hold, so that the
+    // reservations below never exceed what the file holds.
+    let camera_count = tokens.count("the camera count", CAMERA_TOKENS)?;
+    let point_count = tokens.count("the point count", POINT_MIN_TOKENS)?;
     let mut cameras = Vec::with_capacity(camera_count);
     for _ in 0..camera_count {
         let [focal, k1, k2] = tokens.f64s::<3>("f k1 k2")?;

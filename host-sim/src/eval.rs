@@ -455,8 +455,9 @@ pub fn ground_truth_pairs(
 }
 
 /// The reference implementation's reprojection error: mean pixel distance between each
-/// ground-truth keypoint (each once) and its 3D point projected with the estimated pose;
-/// infinite without an estimate, ground truth, or when a point falls behind it.
+/// ground-truth keypoint (each once) and its 3D point projected with the estimated pose
+/// under the query's projection rule; infinite without an estimate, ground truth, or when
+/// the rule refuses a point under the estimate.
 pub fn keypoint_reprojection_error(sample: &QuerySample, estimate: Option<&Pose>) -> f64 {
     let Some(estimate) = estimate else {
         return f64::INFINITY;
@@ -468,8 +469,9 @@ pub fn keypoint_reprojection_error(sample: &QuerySample, estimate: Option<&Pose>
             if !used.insert(keypoint) {
                 continue;
             }
-            let projected = estimate
-                .bearing(&view.xyz[point], 0)
+            let projected = sample
+                .projection
+                .bearing(estimate, &view.xyz[point])
                 .ok()
                 .and_then(|b| sample.camera.bearing_to_pixel(b).ok());
             let Some(p) = projected else {
@@ -492,6 +494,7 @@ fn score(sample: &QuerySample, outcome: Outcome) -> QueryResult {
     let gt_points = sample.gt_inlier_points();
     let error = query_reprojection_error(
         &sample.camera,
+        &sample.projection,
         &sample.pose,
         outcome.estimate.as_ref(),
         &gt_points,

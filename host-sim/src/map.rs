@@ -12,7 +12,9 @@ use gomatch::map::{
     encode, encoded_len, Map, MapViewEntry, CAMERA_BYTES, HEADER_BYTES, INDEX_BYTES, POINT_BYTES,
     VIEW_BYTES,
 };
+use gomatch::pose::{MAX_BEARING, MIN_DEPTH_RATIO};
 
+use crate::protocol::{audit_projections, ProjectionAudit, ProtocolParams};
 use crate::scene::{ImageId, Keypoint, Scene, SceneSource};
 
 /// Bytes of one SIFT descriptor (128 x u8).
@@ -332,6 +334,21 @@ fn print_stats(s: &StorageBreakdown) {
     }
 }
 
+/// Prints how many observations the localizer's projection rule skips.
+fn print_audit(audit: &ProjectionAudit) {
+    let ratio = |r: Option<f64>| r.map_or("none".to_string(), |r| format!("{r:.2e}"));
+    println!(
+        "projection rule (depth >= {MIN_DEPTH_RATIO} x the view's median depth, |bearing| <= {MAX_BEARING}): {} of {} observations skipped ({} at or behind the camera, {} too close, {} off axis); relative depth of the farthest too close: {}, of the closest kept: {}",
+        audit.behind + audit.too_close + audit.off_axis,
+        audit.observations,
+        audit.behind,
+        audit.too_close,
+        audit.off_axis,
+        ratio(audit.farthest_refused_ratio),
+        ratio(audit.closest_kept_ratio),
+    );
+}
+
 /// Runs `map build` or `map stats`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     match &args.command {
@@ -348,6 +365,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             );
             let map = Map::from_bytes(&blob).context("reading back the map")?;
             print_stats(&StorageBreakdown::of(&map, blob.len()));
+            print_audit(&audit_projections(
+                &scene,
+                ProtocolParams::default().max_points,
+            ));
         }
         MapCommand::Stats(stats) => {
             let blob = std::fs::read(&stats.map)

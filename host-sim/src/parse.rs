@@ -202,44 +202,67 @@ impl<'a> ByteReader<'a> {
     }
 }
 
-/// Whitespace-separated tokens of a text file, with the line each comes from.
+/// Whitespace-separated tokens of a text file, with the line each comes from, read lazily
+/// (no per-token storage); the count of tokens left bounds what a declared record count
+/// may reserve ([`Tokens::count`]).
+#[derive(Debug, Clone)]
 pub struct Tokens<'a> {
-    tokens: Vec<(usize, &'a str)>,
-    next: usize,
+    /// The text after the last token read.
+    rest: &'a str,
+    /// Line of the last token read (the first line read before any).
+    line: usize,
+    /// Tokens in `rest`.
+    left: usize,
 }
 
 impl<'a> Tokens<'a> {
     /// Tokens of `text`, skipping the first `skip_lines` lines (headers).
     pub fn new(text: &'a str, skip_lines: usize) -> Self {
-        let tokens = text
-            .lines()
-            .enumerate()
-            .skip(skip_lines)
-            .flat_map(|(i, line)| line.split_whitespace().map(move |t| (i + 1, t)))
-            .collect();
-        Self { tokens, next: 0 }
+        let mut rest = text;
+        for _ in 0..skip_lines {
+            rest = rest.split_once('\n').map_or("", |(_, after)| after);
+        }
+        Self {
+            rest,
+            line: skip_lines + 1,
+            left: rest.split_whitespace().count(),
+        }
     }
 
-    /// Line of the next token (or of the last one at the end of the file).
-    fn line(&self) -> usize {
-        self.tokens
-            .get(self.next)
-            .or(self.tokens.last())
-            .map_or(1, |t| t.0)
+    /// The next token and its line.
+    fn next_token(&mut self) -> Option<(usize, &'a str)> {
+        let start = self.rest.find(|c: char| !c.is_whitespace())?;
+        self.line += self.rest[..start].matches('\n').count();
+        let from = &self.rest[start..];
+        let end = from.find(char::is_whitespace).unwrap_or(from.len());
+        self.rest = &from[end..];
+        self.left -= 1;
+        Some((self.line, &from[..end]))
+    }
+
+    /// Parses a declared record count and checks that that many records of
+    /// `tokens_per_record` tokens each fit in the tokens left, so that a count never
+    /// reserves more than the file holds.
+    pub fn count(&mut self, what: &str, tokens_per_record: usize) -> Result<usize, FormatError> {
+        let count: usize = self.parse(what)?;
+        let limit = self.left / tokens_per_record.max(1);
+        if count > limit {
+            return Err(FormatError::OutOfRange {
+                what: "declared record count",
+                value: count as u64,
+                limit: limit as u64 + 1,
+            });
+        }
+        Ok(count)
     }
 
     /// Parses the next token as a `T`.
     pub fn parse<T: FromStr>(&mut self, what: &str) -> Result<T, FormatError> {
-        let line = self.line();
-        let (line, token) =
-            self.tokens
-                .get(self.next)
-                .copied()
-                .ok_or_else(|| FormatError::Syntax {
-                    line,
-                    message: format!("file ends where {what} was expected"),
-                })?;
-        self.next += 1;
+        let line = self.line;
+        let (line, token) = self.next_token().ok_or_else(|| FormatError::Syntax {
+            line,
+            message: format!("file ends where {what} was expected"),
+        })?;
         token.parse().map_err(|_| FormatError::Syntax {
             line,
             message: format!("expected {what}, found {token:?}"),
@@ -257,9 +280,9 @@ impl<'a> Tokens<'a> {
 
     /// Fails unless every token has been consumed.
     pub fn finish(&self) -> Result<(), FormatError> {
-        match self.tokens.get(self.next) {
+        match self.clone().next_token() {
             None => Ok(()),
-            Some(&(line, token)) => Err(FormatError::Syntax {
+            Some((line, token)) => Err(FormatError::Syntax {
                 line,
                 message: format!("unexpected token {token:?} after the last record"),
             }),

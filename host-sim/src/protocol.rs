@@ -18,10 +18,15 @@
 //! - ground truth: the view's points projected with the true query pose onto the query's
 //!   normalised plane, matched to the keypoints by mutual nearest neighbours closer than
 //!   `gt_threshold`.
+//!
+//! Every projection (a view's bearings, the ground truth, the reprojection metric) goes
+//! through the core's [`ProjectionRule`] of the camera it projects into ([`camera_rule`]):
+//! a point at a camera's centre or far off its axis is skipped, never projected.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use gomatch::localizer::view_point_bearings;
+use gomatch::pose::{ProjectionRule, Unusable, MIN_DEPTH_RATIO};
 use gomatch::{Camera, Pose};
 use nalgebra::Vector3;
 use rand::SeedableRng;
@@ -125,6 +130,8 @@ pub struct ViewSample {
     pub bearings: Vec<[f64; 2]>,
     /// Ground-truth matches `(keypoint index, point index)`, sorted by keypoint.
     pub gt_pairs: Vec<(usize, usize)>,
+    /// Observed points the view's [`ProjectionRule`] refused before its cap was reached.
+    pub refused_points: usize,
 }
 
 impl ViewSample {
@@ -149,6 +156,8 @@ pub struct QuerySample {
     pub camera: Camera,
     /// Its true world-to-camera pose.
     pub pose: Pose,
+    /// The projection rule of its camera ([`camera_rule`]).
+    pub projection: ProjectionRule,
     /// Its keypoints.
     pub keypoints: QueryKeypoints,
     /// Its co-visible views, most overlapping first.
@@ -258,17 +267,38 @@ pub fn query_sample(
     let image = scene.images.get(&image_id)?;
     let camera = *scene.camera_of(image)?;
     let keypoints = query_keypoints(image, &camera, params);
+    let projection = camera_rule(scene, image, params.max_points);
     let views = co_visible_views(scene, image, params)
         .into_iter()
-        .filter_map(|view| view_sample(scene, image, &keypoints, view, params))
+        .filter_map(|view| view_sample(scene, image, &projection, &keypoints, view, params))
         .collect();
     Some(QuerySample {
         image_id,
         camera,
         pose: image.pose,
+        projection,
         keypoints,
         views,
     })
+}
+
+/// An image's observed 3D points in the map's order, each with its id.
+fn observed_xyz<'a>(
+    scene: &'a Scene,
+    image: &Image,
+) -> impl Iterator<Item = ((PointId, Vector3<f64>), [f64; 3])> + Clone + 'a {
+    image.observed_points().into_iter().filter_map(|id| {
+        let xyz = scene.points.get(&id)?.xyz;
+        Some(((id, xyz), [xyz.x, xyz.y, xyz.z]))
+    })
+}
+
+/// The [`ProjectionRule`] of an image's camera under its true pose, as the device computes
+/// it for a view: its reference depth is the median depth of the first `max_points` of
+/// its observed points in front of it.
+pub fn camera_rule(scene: &Scene, image: &Image, max_points: usize) -> ProjectionRule {
+    let points = observed_xyz(scene, image).map(|(_, p)| p);
+    ProjectionRule::of_camera(&image.pose, points, &mut vec![0.0; max_points])
 }
 
 /// The keypoints a detector capped at `max_keypoints` would give (paper supp. "Keypoint
@@ -316,16 +346,15 @@ fn query_keypoints(image: &Image, camera: &Camera, params: &ProtocolParams) -> Q
 fn view_sample(
     scene: &Scene,
     query: &Image,
+    query_rule: &ProjectionRule,
     keypoints: &QueryKeypoints,
     view: CoVisibleView,
     params: &ProtocolParams,
 ) -> Option<ViewSample> {
     let image = scene.images.get(&view.image_id)?;
-    let observed = image.observed_points().into_iter().filter_map(|id| {
-        let xyz = scene.points.get(&id)?.xyz;
-        Some(((id, xyz), [xyz.x, xyz.y, xyz.z]))
-    });
-    let chosen = view_point_bearings(image.pose, observed, params.max_points);
+    let mut depths = vec![0.0; params.max_points];
+    let observed = observed_xyz(scene, image);
+    let mut chosen = view_point_bearings(image.pose, observed, params.max_points, &mut depths);
     let mut sample = ViewSample {
         image_id: view.image_id,
         overlap: view.overlap,
@@ -333,20 +362,71 @@ fn view_sample(
         xyz: Vec::new(),
         bearings: Vec::new(),
         gt_pairs: Vec::new(),
+        refused_points: 0,
     };
-    for ((id, xyz), bearing) in chosen {
+    for ((id, xyz), bearing) in chosen.by_ref() {
         sample.point_ids.push(id);
         sample.xyz.push(xyz);
         sample.bearings.push(bearing);
     }
+    sample.refused_points = chosen.skipped();
     let projected: Vec<Option<[f64; 2]>> = sample
         .xyz
         .iter()
-        .map(|x| query.pose.bearing(x, 0).ok())
+        .map(|x| query_rule.bearing(&query.pose, x).ok())
         .collect();
     sample.gt_pairs =
         mutual_nearest_neighbours(&keypoints.bearings, &projected, params.gt_threshold);
     Some(sample)
+}
+
+/// How the scene's observations fare under their image's [`ProjectionRule`]
+/// ([`camera_rule`]): a real SfM model can hold points triangulated at a camera's centre.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct ProjectionAudit {
+    /// Observations (image, point) audited.
+    pub observations: usize,
+    /// Observed points at or behind their image's camera.
+    pub behind: usize,
+    /// Observed points closer than the rule's minimum depth.
+    pub too_close: usize,
+    /// Observed points beyond the bearing bound.
+    pub off_axis: usize,
+    /// Smallest depth, relative to its image's reference depth, of an observation the rule
+    /// accepts (`None` without one): the margin of the genuine observations over
+    /// [`gomatch::pose::MIN_DEPTH_RATIO`].
+    pub closest_kept_ratio: Option<f64>,
+    /// Largest relative depth of an observation refused as too close (`None` without one).
+    pub farthest_refused_ratio: Option<f64>,
+}
+
+/// Audits every observation of the scene (each image's distinct observed points) under
+/// the image's [`camera_rule`] with `max_points`.
+pub fn audit_projections(scene: &Scene, max_points: usize) -> ProjectionAudit {
+    let mut audit = ProjectionAudit::default();
+    for image in scene.images.values() {
+        let rule = camera_rule(scene, image, max_points);
+        let reference = rule.min_depth() / MIN_DEPTH_RATIO;
+        for ((_, xyz), _) in observed_xyz(scene, image) {
+            audit.observations += 1;
+            match rule.bearing(&image.pose, &xyz) {
+                Ok(_) => {
+                    let ratio = image.pose.transform(&xyz).z / reference;
+                    let closest = audit.closest_kept_ratio.get_or_insert(ratio);
+                    *closest = closest.min(ratio);
+                }
+                Err(Unusable::Behind) => audit.behind += 1,
+                Err(Unusable::TooClose) => {
+                    audit.too_close += 1;
+                    let ratio = image.pose.transform(&xyz).z / reference;
+                    let farthest = audit.farthest_refused_ratio.get_or_insert(ratio);
+                    *farthest = farthest.max(ratio);
+                }
+                Err(Unusable::OffAxis) => audit.off_axis += 1,
+            }
+        }
+    }
+    audit
 }
 
 /// Seeded choice of `min(amount, length)` distinct indices in `0..length` (unordered).
@@ -466,11 +546,14 @@ impl<'a> Grid<'a> {
 
 /// Mean reprojection error of one query (supp. "Reprojection Error AUC"): the mean pixel
 /// distance between the ground-truth 3D points projected with the true pose and with the
-/// estimated pose, through the query camera. Infinite for a failed query (`None`), for a
-/// query without ground-truth points, and when a point cannot be projected with the
-/// estimate (behind the estimated camera).
+/// estimated pose, through the query camera and its projection `rule`. Points the rule
+/// refuses under the true pose are not scored (the protocol's ground truth holds none).
+/// Infinite for a failed query (`None`), for a query without a scored point, and when a
+/// scored point has no projection with the estimate (the estimate puts it behind, at the
+/// centre of or far off the axis of its camera).
 pub fn query_reprojection_error(
     camera: &Camera,
+    rule: &ProjectionRule,
     true_pose: &Pose,
     estimate: Option<&Pose>,
     points: &[Vector3<f64>],
@@ -478,22 +561,26 @@ pub fn query_reprojection_error(
     let Some(estimate) = estimate else {
         return f64::INFINITY;
     };
-    if points.is_empty() {
-        return f64::INFINITY;
-    }
     let project = |pose: &Pose, x: &Vector3<f64>| {
-        pose.bearing(x, 0)
+        rule.bearing(pose, x)
             .ok()
             .and_then(|b| camera.bearing_to_pixel(b).ok())
     };
-    let mut total = 0.0;
+    let (mut total, mut scored) = (0.0, 0usize);
     for x in points {
-        let (Some(truth), Some(estimated)) = (project(true_pose, x), project(estimate, x)) else {
+        let Some(truth) = project(true_pose, x) else {
+            continue;
+        };
+        let Some(estimated) = project(estimate, x) else {
             return f64::INFINITY;
         };
         total += ((truth[0] - estimated[0]).powi(2) + (truth[1] - estimated[1]).powi(2)).sqrt();
+        scored += 1;
     }
-    total / points.len() as f64
+    if scored == 0 {
+        return f64::INFINITY;
+    }
+    total / scored as f64
 }
 
 /// Area under the cumulative recall curve of per-query errors up to each threshold,
@@ -641,21 +728,19 @@ mod tests {
         // Shifting the camera by 0.01 along x moves points at depth 1 by 1 px.
         let estimate = Pose::new(Rotation3::identity(), Vector3::new(0.01, 0.0, 0.0));
         let points = [Vector3::new(0.0, 0.0, 1.0), Vector3::new(0.1, 0.2, 1.0)];
-        let error = query_reprojection_error(&camera, &truth, Some(&estimate), &points);
-        assert!(close(error, 1.0));
-        assert_eq!(
-            query_reprojection_error(&camera, &truth, None, &points),
-            f64::INFINITY
-        );
-        assert_eq!(
-            query_reprojection_error(&camera, &truth, Some(&estimate), &[]),
-            f64::INFINITY
-        );
+        let rule = ProjectionRule::with_reference_depth(1.0);
+        let error = |estimate: Option<&Pose>, points: &[Vector3<f64>]| {
+            query_reprojection_error(&camera, &rule, &truth, estimate, points)
+        };
+        assert!(close(error(Some(&estimate), &points), 1.0));
+        // A point at the true camera's centre would move by ~1e7 px; it is not scored.
+        let with_centre = [points[0], Vector3::new(1e-9, 0.0, 1e-10), points[1]];
+        assert!(close(error(Some(&estimate), &with_centre), 1.0));
+        assert_eq!(error(None, &points), f64::INFINITY);
+        assert_eq!(error(Some(&estimate), &[]), f64::INFINITY);
+        assert_eq!(error(Some(&estimate), &with_centre[1..2]), f64::INFINITY);
         let behind = Pose::new(Rotation3::identity(), Vector3::new(0.0, 0.0, -2.0));
-        assert_eq!(
-            query_reprojection_error(&camera, &truth, Some(&behind), &points),
-            f64::INFINITY
-        );
+        assert_eq!(error(Some(&behind), &points), f64::INFINITY);
     }
 
     #[test]

@@ -123,7 +123,8 @@ fn device_and_protocol_select_the_same_view_points() {
                     let p = observed.get(j).unwrap();
                     (p, map.point(p as usize).unwrap().map(f64::from))
                 });
-                let device: Vec<u32> = view_point_bearings(pose, points, CAPACITY)
+                let mut depths = vec![0.0; CAPACITY];
+                let device: Vec<u32> = view_point_bearings(pose, points, CAPACITY, &mut depths)
                     .map(|(p, _)| p)
                     .collect();
                 let protocol: Vec<u32> = view.point_ids.iter().map(|id| index[id]).collect();

@@ -363,7 +363,8 @@ pub fn map_query(map: &Map<'_>, capacity: usize) -> Result<MapQuery> {
         bearings: Vec::new(),
         points: Vec::new(),
     };
-    for (point, bearing) in view_point_bearings(view.pose, points, capacity) {
+    let mut depths = vec![0.0; capacity];
+    for (point, bearing) in view_point_bearings(view.pose, points, capacity, &mut depths) {
         let Ok(pixel) = camera.bearing_to_pixel(bearing) else {
             continue;
         };
