@@ -627,8 +627,13 @@ mod tests {
         let second = root.join("garden/sparse/1");
         std::fs::create_dir_all(&second).unwrap();
         std::fs::write(second.join("cameras.bin"), "").unwrap();
-        let error = find_model_dir(&root.join("garden")).unwrap_err().to_string();
-        assert!(error.contains("pick one of") && error.contains("sparse/1"), "{error}");
+        let error = find_model_dir(&root.join("garden"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("pick one of") && error.contains("sparse/1"),
+            "{error}"
+        );
         let blob = root.join("map.bin");
         std::fs::write(&blob, b"GMAP\x02\0\0\0").unwrap();
         let error = find_model_dir(&blob).unwrap_err().to_string();

@@ -153,7 +153,10 @@ pub fn read_npy(path: &Path) -> anyhow::Result<KeypointFile> {
             .map(f64::from)
             .collect(),
     };
-    let rows: Vec<Vec<f64>> = values.chunks_exact(shape[1] as usize).map(<[f64]>::to_vec).collect();
+    let rows: Vec<Vec<f64>> = values
+        .chunks_exact(shape[1] as usize)
+        .map(<[f64]>::to_vec)
+        .collect();
     KeypointFile::from_rows(&rows, &what)
 }
 
@@ -162,7 +165,8 @@ pub fn read_keypoint_file(path: &Path) -> anyhow::Result<KeypointFile> {
     if path.extension().is_some_and(|e| e == "npy") {
         return read_npy(path);
     }
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     parse_text(&text, &path.display().to_string())
 }
 
@@ -195,7 +199,11 @@ pub fn from_colmap_blob(rows: usize, cols: usize, data: &[u8]) -> anyhow::Result
     );
     let rank = match cols {
         4 => Rank::Descending(rows.iter().map(|r| r[2]).collect()),
-        6 => Rank::Descending(rows.iter().map(|r| affine_scale(r[2], r[3], r[4], r[5])).collect()),
+        6 => Rank::Descending(
+            rows.iter()
+                .map(|r| affine_scale(r[2], r[3], r[4], r[5]))
+                .collect(),
+        ),
         _ => Rank::ReverseOrder,
     };
     Ok(KeypointFile {
@@ -242,15 +250,30 @@ impl ColmapDatabase {
             .query_row(
                 "SELECT rows, cols, data FROM keypoints WHERE image_id = ?1",
                 [image_id],
-                |row| Ok((row.get(0)?, row.get(1)?, row.get::<_, Option<Vec<u8>>>(2)?.unwrap_or_default())),
+                |row| {
+                    Ok((
+                        row.get(0)?,
+                        row.get(1)?,
+                        row.get::<_, Option<Vec<u8>>>(2)?.unwrap_or_default(),
+                    ))
+                },
             )
             .optional()
             .with_context(|| format!("{}: reading the keypoints table", self.path))?
-            .with_context(|| format!("{}: image {name:?} has no keypoints (run colmap feature_extractor)", self.path))?;
+            .with_context(|| {
+                format!(
+                    "{}: image {name:?} has no keypoints (run colmap feature_extractor)",
+                    self.path
+                )
+            })?;
         let (Ok(rows), Ok(cols)) = (usize::try_from(rows), usize::try_from(cols)) else {
-            bail!("{}: image {name:?}: corrupt keypoint shape {rows} x {cols}", self.path);
+            bail!(
+                "{}: image {name:?}: corrupt keypoint shape {rows} x {cols}",
+                self.path
+            );
         };
-        from_colmap_blob(rows, cols, &data).with_context(|| format!("{}: image {name:?}", self.path))
+        from_colmap_blob(rows, cols, &data)
+            .with_context(|| format!("{}: image {name:?}", self.path))
     }
 
     /// The camera of the image called `name` (COLMAP's `cameras` table: model id, width,
@@ -321,7 +344,10 @@ mod tests {
         let four = blob(&[1.0, 1.0, 3.0, 0.0, 2.0, 2.0, 5.0, 0.0]);
         assert_eq!(from_colmap_blob(2, 4, &four).unwrap().ranked(), vec![1, 0]);
         let two = blob(&[1.0, 1.0, 2.0, 2.0, 3.0, 3.0]);
-        assert_eq!(from_colmap_blob(3, 2, &two).unwrap().ranked(), vec![2, 1, 0]);
+        assert_eq!(
+            from_colmap_blob(3, 2, &two).unwrap().ranked(),
+            vec![2, 1, 0]
+        );
         assert!(from_colmap_blob(3, 2, &two[..20]).is_err());
         assert!(from_colmap_blob(1, 3, &two[..12]).is_err());
         assert!(from_colmap_blob(usize::MAX, 2, &two).is_err());

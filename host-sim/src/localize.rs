@@ -543,7 +543,10 @@ pub fn run(args: &Args) -> anyhow::Result<LocalizeReport> {
         localized: per_query.iter().filter(|q| q.pose.is_some()).count(),
         per_query,
     };
-    println!("{} of {} queries localized", report.localized, report.queries);
+    println!(
+        "{} of {} queries localized",
+        report.localized, report.queries
+    );
     write_outputs(args, &report)?;
     Ok(report)
 }
@@ -581,7 +584,10 @@ mod tests {
         assert_eq!(list.len(), 2);
         assert_eq!(list[0].name, "q1.jpg");
         let camera = list[1].camera.unwrap();
-        assert_eq!((camera.width, camera.focal, camera.principal), (10, [5.0, 6.0], [5.0, 10.0]));
+        assert_eq!(
+            (camera.width, camera.focal, camera.principal),
+            (10, [5.0, 6.0], [5.0, 10.0])
+        );
         assert!(parse_query_list("q.jpg PINHOLE 10 20 5\n").is_err());
         assert!(parse_query_list("q.jpg FISHEYE 10 20 5 5 5\n").is_err());
 

@@ -15,7 +15,7 @@ use clap::Parser;
 use gomatch::{Camera, Pose};
 use gomatch_sim::colmap::camera_line;
 use gomatch_sim::eval::TimingsMs;
-use gomatch_sim::localize::{parse_pose, run, Args, LocalizeReport, QueryOutcome};
+use gomatch_sim::localize::{parse_pose, run, Args, ColmapPose, LocalizeReport, QueryOutcome};
 use gomatch_sim::map::{build_map, exclude_images};
 use gomatch_sim::scene::{Image, Scene, SceneSource};
 use rusqlite::Connection;
@@ -97,10 +97,19 @@ fn write_database(path: &Path, scene: &Scene, queries: &[&Image]) {
     .unwrap();
     for (id, camera) in &scene.cameras {
         let (params, count) = camera.colmap_params();
-        let blob: Vec<u8> = params[..count].iter().flat_map(|p| p.to_le_bytes()).collect();
+        let blob: Vec<u8> = params[..count]
+            .iter()
+            .flat_map(|p| p.to_le_bytes())
+            .collect();
         db.execute(
             "INSERT INTO cameras VALUES (?1, ?2, ?3, ?4, ?5, 0)",
-            rusqlite::params![id, camera.model.colmap_id(), camera.width, camera.height, blob],
+            rusqlite::params![
+                id,
+                camera.model.colmap_id(),
+                camera.width,
+                camera.height,
+                blob
+            ],
         )
         .unwrap();
     }
@@ -228,22 +237,47 @@ fn held_out_images_of_a_real_model_are_localized_from_text_and_database_keypoint
         untimed(&from_database.per_query),
         untimed(&from_text.per_query[..2])
     );
-    assert_eq!(untimed(&single.per_query), untimed(&from_text.per_query[..1]));
+    assert_eq!(
+        untimed(&single.per_query),
+        untimed(&from_text.per_query[..1])
+    );
 
     let errors = score(&scene, &from_text);
     for (name, error) in &errors {
-        let q = from_text.per_query.iter().find(|q| &q.name == name).unwrap();
+        let q = from_text
+            .per_query
+            .iter()
+            .find(|q| &q.name == name)
+            .unwrap();
         println!(
             "{name}: {} inliers, reprojection error {}",
             q.counts.inliers,
             error.map_or("- (not localized)".into(), |e| format!("{e:.2} px"))
         );
-        assert_eq!(q.keypoints_total, scene.images.values().find(|i| &i.name == name).unwrap().keypoints.len());
+        assert_eq!(
+            q.keypoints_total,
+            scene
+                .images
+                .values()
+                .find(|i| &i.name == name)
+                .unwrap()
+                .keypoints
+                .len()
+        );
         assert!(q.keypoints_used <= 1024);
     }
-    let within = errors.values().filter(|e| e.is_some_and(|e| e < 10.0)).count();
+    // Measured 2026-12-01 (acceptance: at least 4 inliers): 6 of 8 within 10 px (0.13 to
+    // 6.20 px); the other two were accepted with 5 and 6 inliers, 361 and 308 px off.
+    let within = errors
+        .values()
+        .filter(|e| e.is_some_and(|e| e < 10.0))
+        .count();
     println!("{within} of {} held-out images within 10 px", errors.len());
-    assert!(within * 2 > errors.len(), "only {within} of {} within 10 px", errors.len());
+    assert!(
+        within * 2 > errors.len(),
+        "only {within} of {} within 10 px",
+        errors.len()
+    );
 
     // The results file has one hloc line per localized query, matching the JSON.
     let results = std::fs::read_to_string(file("results.txt")).unwrap();
@@ -257,8 +291,26 @@ fn held_out_images_of_a_real_model_are_localized_from_text_and_database_keypoint
         assert_eq!(values[..4], expected.qvec);
         assert_eq!(values[4..], expected.tvec);
     }
-    let json: LocalizeReport =
-        serde_json::from_str(&std::fs::read_to_string(file("report.json")).unwrap()).unwrap();
-    assert_eq!(json, from_text);
+    // The JSON file is the report; it reads back (floats to within their printing).
+    let json = std::fs::read_to_string(file("report.json")).unwrap();
+    assert_eq!(json, serde_json::to_string_pretty(&from_text).unwrap());
+    let parsed: LocalizeReport = serde_json::from_str(&json).unwrap();
+    assert_eq!(parsed.per_query.len(), from_text.per_query.len());
+    for (a, b) in parsed.per_query.iter().zip(&from_text.per_query) {
+        assert_eq!((&a.name, &a.views, a.counts), (&b.name, &b.views, b.counts));
+        let values = |p: ColmapPose| p.qvec.into_iter().chain(p.tvec);
+        match (a.pose, b.pose) {
+            (Some(pa), Some(pb)) => {
+                assert!(values(pa)
+                    .zip(values(pb))
+                    .all(|(x, y)| (x - y).abs() < 1e-12));
+            }
+            (pa, pb) => assert_eq!(pa.is_some(), pb.is_some()),
+        }
+        let pairs = |q: &QueryOutcome| -> Vec<(usize, u32)> {
+            q.inliers.iter().map(|i| (i.keypoint, i.point)).collect()
+        };
+        assert_eq!(pairs(a), pairs(b));
+    }
     std::fs::remove_dir_all(&dir).unwrap();
 }

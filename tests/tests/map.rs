@@ -61,7 +61,12 @@ fn synthetic_scene_round_trips_through_the_map() {
 #[test]
 fn excluded_images_leave_the_map_with_the_points_only_they_observe() {
     let scene = synthetic_scene(2, 0);
-    let names: Vec<String> = scene.images.values().take(2).map(|i| i.name.clone()).collect();
+    let names: Vec<String> = scene
+        .images
+        .values()
+        .take(2)
+        .map(|i| i.name.clone())
+        .collect();
     let kept = exclude_images(&scene, &names).unwrap();
     assert_eq!(kept.images.len(), scene.images.len() - 2);
     check_round_trip(&kept);
@@ -74,10 +79,21 @@ fn excluded_images_leave_the_map_with_the_points_only_they_observe() {
     let seen_by_kept = scene
         .points
         .values()
-        .filter(|p| p.track.iter().any(|e| kept.images.contains_key(&e.image_id)))
+        .filter(|p| {
+            p.track
+                .iter()
+                .any(|e| kept.images.contains_key(&e.image_id))
+        })
         .count();
     assert_eq!(map.point_count(), seen_by_kept);
-    assert!(seen_by_kept < scene.points.values().filter(|p| !p.track.is_empty()).count());
+    assert!(
+        seen_by_kept
+            < scene
+                .points
+                .values()
+                .filter(|p| !p.track.is_empty())
+                .count()
+    );
     assert!(exclude_images(&scene, &["no such image".into()]).is_err());
 }
 

@@ -111,7 +111,10 @@ pub fn read_model_blob(path: &Path) -> anyhow::Result<Vec<u8>> {
     let blob = read(path, "model")?;
     if let Err(error) = Model::from_bytes(&blob) {
         let advice = model_advice(FileKind::of(&blob), error);
-        anyhow::bail!("{} is not a usable model blob ({error}): {advice}", path.display());
+        anyhow::bail!(
+            "{} is not a usable model blob ({error}): {advice}",
+            path.display()
+        );
     }
     Ok(blob)
 }
@@ -121,7 +124,10 @@ pub fn read_map_blob(path: &Path) -> anyhow::Result<Vec<u8>> {
     let blob = read(path, "map")?;
     if let Err(error) = Map::from_bytes(&blob) {
         let advice = map_advice(FileKind::of(&blob), error);
-        anyhow::bail!("{} is not a usable map blob ({error}): {advice}", path.display());
+        anyhow::bail!(
+            "{} is not a usable map blob ({error}): {advice}",
+            path.display()
+        );
     }
     Ok(blob)
 }
@@ -133,7 +139,10 @@ fn search_roots() -> Vec<PathBuf> {
     if let Ok(dir) = std::env::current_dir() {
         roots.extend(dir.ancestors().map(Path::to_path_buf));
     }
-    if let Some(dir) = std::env::current_exe().ok().and_then(|e| e.parent().map(Path::to_path_buf)) {
+    if let Some(dir) = std::env::current_exe()
+        .ok()
+        .and_then(|e| e.parent().map(Path::to_path_buf))
+    {
         roots.extend(dir.ancestors().map(Path::to_path_buf));
     }
     roots
