@@ -840,6 +840,7 @@ mod tests {
         let all: Vec<u32> = (0..80).collect();
         let views = [(10, -0.3), (20, 0.3)].map(|(image_id, x)| MapViewEntry {
             image_id,
+            name: "",
             camera_index: 0,
             pose: pose(x),
             points: &all,

@@ -790,18 +790,21 @@ mod tests {
         let views = [
             MapViewEntry {
                 image_id: 10,
+                name: "",
                 camera_index: 0,
                 pose: pose(-0.3),
                 points: &all,
             },
             MapViewEntry {
                 image_id: 20,
+                name: "",
                 camera_index: 0,
                 pose: pose(0.3),
                 points: &all,
             },
             MapViewEntry {
                 image_id: 30,
+                name: "",
                 camera_index: 0,
                 pose: pose(0.0),
                 points: &few,

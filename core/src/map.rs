@@ -8,15 +8,20 @@
 //! ```text
 //! header  16 bytes: magic "GMAP" | format version u16 | reserved u16 = 0
 //!                   | payload length u32 | CRC-32 (IEEE) of the payload u32
-//! payload postcard encoding of four byte strings (varint length + bytes each):
+//! payload postcard encoding of five byte strings (varint length + bytes each):
 //!   points       12 bytes per point: x, y, z as f32
 //!   cameras      73 bytes per camera: COLMAP model id u8, width u32, height u32,
 //!                8 parameters f64 in COLMAP order, zero-padded
-//!   views        72 bytes per view: image id u32, camera index u32,
+//!   views        80 bytes per view: image id u32, camera index u32,
 //!                pose qw qx qy qz tx ty tz f64 (COLMAP world-to-camera),
-//!                first index u32 and count u32 into `view points`
+//!                first index u32 and count u32 into `view points`,
+//!                first byte u32 and length u32 of its name in `names`
 //!   view points  4 bytes per observation: point index u32
+//!   names        the views' image names (UTF-8), one after the other
 //! ```
+//!
+//! Version 1 had no names (72-byte views, four byte strings); it is refused with
+//! [`Error::MapVersionMismatch`]: rebuild the map with `gomatch-sim map build`.
 //!
 //! [`Map::from_bytes`] checks everything once (header, checksum, record sizes, every index,
 //! every camera and pose), so the accessors afterwards cannot meet a bad record.
@@ -32,7 +37,7 @@ use crate::pose::Pose;
 /// First four bytes of every map blob.
 pub const MAP_MAGIC: [u8; 4] = *b"GMAP";
 /// Format version this code reads and writes.
-pub const MAP_VERSION: u16 = 1;
+pub const MAP_VERSION: u16 = 2;
 /// Size of the fixed header.
 pub const HEADER_BYTES: usize = 16;
 /// Bytes per stored 3D point.
@@ -40,7 +45,7 @@ pub const POINT_BYTES: usize = 12;
 /// Bytes per stored camera.
 pub const CAMERA_BYTES: usize = 1 + 4 + 4 + 8 * 8;
 /// Bytes per stored view.
-pub const VIEW_BYTES: usize = 4 + 4 + 7 * 8 + 4 + 4;
+pub const VIEW_BYTES: usize = 4 + 4 + 7 * 8 + 4 + 4 + 4 + 4;
 /// Bytes per stored observation (point index).
 pub const INDEX_BYTES: usize = 4;
 
@@ -90,13 +95,14 @@ fn f64_at(bytes: &[u8], offset: usize) -> Option<f64> {
     array(bytes, offset).map(f64::from_le_bytes)
 }
 
-/// The four byte strings of the payload, borrowed from the blob.
+/// The five byte strings of the payload, borrowed from the blob.
 #[derive(Deserialize)]
 struct PayloadRef<'a> {
     points: &'a [u8],
     cameras: &'a [u8],
     views: &'a [u8],
     view_points: &'a [u8],
+    names: &'a [u8],
 }
 
 /// An unsigned machine word the decoder's offsets are computed in: `usize`, which is
@@ -148,6 +154,10 @@ pub struct MapView {
     first: u32,
     /// Number of observations.
     count: u32,
+    /// First byte of the view's name in the name list.
+    name_first: u32,
+    /// Bytes of the name.
+    name_len: u32,
 }
 
 /// The point indices a view observes, borrowed from the blob.
@@ -187,13 +197,15 @@ pub struct Map<'a> {
     cameras: &'a [u8],
     views: &'a [u8],
     view_points: &'a [u8],
+    names: &'a [u8],
 }
 
 impl<'a> Map<'a> {
     /// Reads and validates a map blob without copying it. Fails with
     /// [`Error::MapTruncated`], [`Error::MapBadMagic`], [`Error::MapVersionMismatch`],
     /// [`Error::MapChecksumMismatch`], [`Error::MapCorrupt`] (undecodable payload, record
-    /// sizes, trailing bytes), [`Error::MapIndexOutOfRange`], [`Error::InvalidIntrinsics`]
+    /// sizes, trailing bytes, a name outside the name list or not UTF-8),
+    /// [`Error::MapIndexOutOfRange`], [`Error::InvalidIntrinsics`]
     /// or [`Error::NonFinite`].
     pub fn from_bytes(blob: &'a [u8]) -> Result<Self> {
         let header: [u8; HEADER_BYTES] = array(blob, 0).ok_or(Error::MapTruncated {
@@ -237,6 +249,7 @@ impl<'a> Map<'a> {
             cameras: decoded.cameras,
             views: decoded.views,
             view_points: decoded.view_points,
+            names: decoded.names,
         };
         map.validate()?;
         Ok(map)
@@ -284,6 +297,7 @@ impl<'a> Map<'a> {
                     limit: observations,
                 });
             }
+            self.name_of(&view)?;
         }
         let points = self.point_count();
         let view_points = ViewPoints {
@@ -377,7 +391,23 @@ impl<'a> Map<'a> {
             pose: Pose::from_colmap(q, t)?,
             first: u32_at(record, 64).ok_or(Error::MapCorrupt)?,
             count: u32_at(record, 68).ok_or(Error::MapCorrupt)?,
+            name_first: u32_at(record, 72).ok_or(Error::MapCorrupt)?,
+            name_len: u32_at(record, 76).ok_or(Error::MapCorrupt)?,
         })
+    }
+
+    /// The image name of view `index` (empty for a view stored without one).
+    pub fn view_name(&self, index: usize) -> Result<&'a str> {
+        self.name_of(&self.view(index)?)
+    }
+
+    fn name_of(&self, view: &MapView) -> Result<&'a str> {
+        let start = view.name_first as usize;
+        let bytes = start
+            .checked_add(view.name_len as usize)
+            .and_then(|end| self.names.get(start..end))
+            .ok_or(Error::MapCorrupt)?;
+        core::str::from_utf8(bytes).map_err(|_| Error::MapCorrupt)
     }
 
     /// The point indices view `index` observes.
@@ -470,11 +500,14 @@ impl<'a> Map<'a> {
     }
 }
 
-/// A database view to store: its image id, camera index, pose and observed point indices.
+/// A database view to store: its image id and name, camera index, pose and observed point
+/// indices.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct MapViewEntry<'p> {
     /// Image id in the source model.
     pub image_id: u32,
+    /// Image name in the source model (e.g. its file name; may be empty).
+    pub name: &'p str,
     /// Index into the cameras given to [`encode`].
     pub camera_index: u32,
     /// World-to-camera pose.
@@ -514,6 +547,11 @@ fn varint_len(mut value: usize) -> usize {
     len
 }
 
+/// Total bytes of the views' names.
+fn name_bytes(views: &[MapViewEntry<'_>]) -> usize {
+    views.iter().map(|v| v.name.len()).sum()
+}
+
 /// Size of the blob [`encode`] writes for these inputs.
 pub fn encoded_len(point_count: usize, camera_count: usize, views: &[MapViewEntry<'_>]) -> usize {
     let observations: usize = views.iter().map(|v| v.points.len()).sum();
@@ -522,6 +560,7 @@ pub fn encoded_len(point_count: usize, camera_count: usize, views: &[MapViewEntr
         camera_count * CAMERA_BYTES,
         views.len() * VIEW_BYTES,
         observations * INDEX_BYTES,
+        name_bytes(views),
     ]
     .iter()
     .map(|&n| varint_len(n) + n)
@@ -535,7 +574,13 @@ fn check_inputs(points: &[[f32; 3]], cameras: &[Camera], views: &[MapViewEntry<'
         requested: n,
     };
     let observations: usize = views.iter().map(|v| v.points.len()).sum();
-    for n in [points.len(), cameras.len(), views.len(), observations] {
+    for n in [
+        points.len(),
+        cameras.len(),
+        views.len(),
+        observations,
+        name_bytes(views),
+    ] {
         if n > u32::MAX as usize {
             return Err(too_many(n));
         }
@@ -626,7 +671,7 @@ pub fn encode(
     let view_bytes = ByteString {
         len: views.len() * VIEW_BYTES,
         write: |emit: &mut dyn FnMut(u8)| {
-            let mut first = 0u32;
+            let (mut first, mut name_first) = (0u32, 0u32);
             for view in views {
                 let q = UnitQuaternion::from_rotation_matrix(&view.pose.rotation);
                 let t = view.pose.translation;
@@ -643,6 +688,11 @@ pub fn encode(
                 first.to_le_bytes().into_iter().for_each(&mut *emit);
                 count.to_le_bytes().into_iter().for_each(&mut *emit);
                 first += count;
+                // Name bytes were checked to fit in u32 above.
+                let name_len = view.name.len() as u32;
+                name_first.to_le_bytes().into_iter().for_each(&mut *emit);
+                name_len.to_le_bytes().into_iter().for_each(&mut *emit);
+                name_first += name_len;
             }
         },
     };
@@ -654,10 +704,24 @@ pub fn encode(
             }
         },
     };
+    let names = ByteString {
+        len: name_bytes(views),
+        write: |emit: &mut dyn FnMut(u8)| {
+            for byte in views.iter().flat_map(|v| v.name.bytes()) {
+                emit(byte);
+            }
+        },
+    };
     let (header, payload) = out.split_at_mut(HEADER_BYTES);
     let capacity = payload.len();
     let payload_len = {
-        let tuple = Payload(&point_bytes, &camera_bytes, &view_bytes, &observation_bytes);
+        let tuple = Payload(
+            &point_bytes,
+            &camera_bytes,
+            &view_bytes,
+            &observation_bytes,
+            &names,
+        );
         postcard::to_slice(&tuple, payload)
             .map_err(|_| Error::CapacityExceeded {
                 capacity,
@@ -674,16 +738,19 @@ pub fn encode(
     Ok(HEADER_BYTES + payload_len)
 }
 
-/// The payload's four byte strings in order.
-struct Payload<'x, A, B, C, D>(&'x A, &'x B, &'x C, &'x D);
+/// The payload's five byte strings in order.
+struct Payload<'x, A, B, C, D, E>(&'x A, &'x B, &'x C, &'x D, &'x E);
 
-impl<A: Serialize, B: Serialize, C: Serialize, D: Serialize> Serialize for Payload<'_, A, B, C, D> {
+impl<A: Serialize, B: Serialize, C: Serialize, D: Serialize, E: Serialize> Serialize
+    for Payload<'_, A, B, C, D, E>
+{
     fn serialize<S: Serializer>(&self, serializer: S) -> core::result::Result<S::Ok, S::Error> {
-        let mut tuple = serializer.serialize_tuple(4)?;
+        let mut tuple = serializer.serialize_tuple(5)?;
         tuple.serialize_element(self.0)?;
         tuple.serialize_element(self.1)?;
         tuple.serialize_element(self.2)?;
         tuple.serialize_element(self.3)?;
+        tuple.serialize_element(self.4)?;
         tuple.end()
     }
 }
@@ -733,18 +800,21 @@ mod tests {
         [
             MapViewEntry {
                 image_id: 10,
+                name: "a.jpg",
                 camera_index: 0,
                 pose: pose(0.0, 0.0),
                 points: &FIRST,
             },
             MapViewEntry {
                 image_id: 20,
+                name: "dir/b.jpg",
                 camera_index: 1,
                 pose: pose(-3.0, 0.1),
                 points: &SECOND,
             },
             MapViewEntry {
                 image_id: 30,
+                name: "",
                 camera_index: 0,
                 pose: pose(1.0, 3.0),
                 points: &[],
@@ -793,6 +863,7 @@ mod tests {
             let points = map.view_points(i).unwrap();
             assert_eq!(points.len(), entry.points.len());
             assert!(points.iter().eq(entry.points.iter().copied()));
+            assert_eq!(map.view_name(i), Ok(entry.name));
         }
         assert_eq!(map.view_points(1).unwrap().get(1), Some(1));
         assert_eq!(map.view_points(1).unwrap().get(2), None);
@@ -841,12 +912,13 @@ mod tests {
         copy[0] = b'X';
         assert_eq!(Map::from_bytes(&copy[..len]), Err(Error::MapBadMagic));
         copy[..len].copy_from_slice(blob);
-        copy[4] = 2;
+        // A version-1 map (no names) is refused by its version.
+        copy[4] = 1;
         assert_eq!(
             Map::from_bytes(&copy[..len]),
             Err(Error::MapVersionMismatch {
-                expected: 1,
-                found: 2
+                expected: 2,
+                found: 1
             })
         );
         copy[..len].copy_from_slice(blob);
@@ -868,8 +940,10 @@ mod tests {
     fn sealed_but_inconsistent_payloads_are_refused() {
         let mut buffer = [0u8; 1024];
         let len = encode_sample(&mut buffer);
-        // The last observation index (point 1 of the second view) becomes 9.
-        buffer[len - 4..len].copy_from_slice(&9u32.to_le_bytes());
+        // The last observation index (point 1 of the second view, before the names and
+        // their length byte) becomes 9.
+        let names = "a.jpgdir/b.jpg".len() + 1;
+        buffer[len - names - 4..len - names].copy_from_slice(&9u32.to_le_bytes());
         reseal(&mut buffer[..len]);
         assert_eq!(
             Map::from_bytes(&buffer[..len]),
@@ -884,6 +958,20 @@ mod tests {
         // First byte of the payload: the points' length varint (48) claims one more byte.
         assert_eq!(buffer[HEADER_BYTES], 48);
         buffer[HEADER_BYTES] = 49;
+        reseal(&mut buffer[..len]);
+        assert_eq!(Map::from_bytes(&buffer[..len]), Err(Error::MapCorrupt));
+        // A name that is not UTF-8, and a name range past the name list.
+        let mut buffer = [0u8; 1024];
+        let len = encode_sample(&mut buffer);
+        buffer[len - 1] = 0xFF;
+        reseal(&mut buffer[..len]);
+        assert_eq!(Map::from_bytes(&buffer[..len]), Err(Error::MapCorrupt));
+        let mut buffer = [0u8; 1024];
+        let len = encode_sample(&mut buffer);
+        let views_start = len - (14 + 1) - (5 * INDEX_BYTES + 1) - 3 * VIEW_BYTES;
+        let second_name_len = views_start + VIEW_BYTES + 76;
+        assert_eq!(buffer[second_name_len], 9);
+        buffer[second_name_len] = 10;
         reseal(&mut buffer[..len]);
         assert_eq!(Map::from_bytes(&buffer[..len]), Err(Error::MapCorrupt));
     }

@@ -3,9 +3,9 @@
 //! their origin at the top-left corner, and an untriangulated keypoint has point id -1.
 
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
-use anyhow::Context;
+use anyhow::{bail, Context};
 use gomatch::camera::CameraModel;
 use gomatch::{Camera, Pose};
 use nalgebra::Vector3;
@@ -25,10 +25,84 @@ const KEYPOINT_RECORD_BYTES: usize = 8 + 8 + 8;
 const POINT_RECORD_MIN_BYTES: usize = 8 + 3 * 8 + 3 + 8 + 8;
 const TRACK_ELEMENT_BYTES: usize = 4 + 4;
 
-/// Reads a COLMAP sparse model folder. Uses the `.bin` files when `cameras.bin` exists,
-/// the `.txt` files otherwise. The scene is named after the folder (see
-/// [`SceneSource::name`]) and is not yet validated.
+/// Whether `dir` holds a COLMAP model (`cameras.bin` or `cameras.txt`).
+fn holds_model(dir: &Path) -> bool {
+    dir.join("cameras.bin").is_file() || dir.join("cameras.txt").is_file()
+}
+
+/// Folders up to two levels below `dir` that hold a COLMAP model, sorted.
+fn models_below(dir: &Path) -> Vec<PathBuf> {
+    let subfolders = |d: &Path| -> Vec<PathBuf> {
+        let Ok(entries) = std::fs::read_dir(d) else {
+            return Vec::new();
+        };
+        let mut dirs: Vec<PathBuf> = entries
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.is_dir())
+            .collect();
+        dirs.sort();
+        dirs
+    };
+    subfolders(dir)
+        .into_iter()
+        .flat_map(|child| {
+            let grandchildren = subfolders(&child);
+            std::iter::once(child).chain(grandchildren)
+        })
+        .filter(|d| holds_model(d))
+        .collect()
+}
+
+/// The model folder `dir` names: `dir` itself when it holds a model, else the one model up
+/// to two levels below it (COLMAP's `sparse/0` layout). Several models below, none, or a
+/// file instead of a folder are errors that say what was found.
+pub fn find_model_dir(dir: &Path) -> anyhow::Result<PathBuf> {
+    if dir.is_file() {
+        let head: Vec<u8> = std::fs::read(dir)
+            .map(|b| b.into_iter().take(64).collect())
+            .unwrap_or_default();
+        bail!(
+            "{} is a file ({}), not a COLMAP model folder (cameras, images, points3D .bin or .txt)",
+            dir.display(),
+            gomatch_tools::files::FileKind::of(&head).describe()
+        );
+    }
+    if holds_model(dir) {
+        return Ok(dir.to_path_buf());
+    }
+    match models_below(dir).as_slice() {
+        [one] => {
+            eprintln!("using the COLMAP model in {}", one.display());
+            Ok(one.clone())
+        }
+        [] => bail!(
+            "{} holds no COLMAP model (cameras.bin or cameras.txt), nor do its subfolders",
+            dir.display()
+        ),
+        several => {
+            const SHOWN: usize = 5;
+            let mut list: Vec<String> = several
+                .iter()
+                .take(SHOWN)
+                .map(|d| d.display().to_string())
+                .collect();
+            if several.len() > SHOWN {
+                list.push(format!("and {} more", several.len() - SHOWN));
+            }
+            bail!(
+                "{} holds no COLMAP model itself; pick one of: {}",
+                dir.display(),
+                list.join(", ")
+            )
+        }
+    }
+}
+
+/// Reads a COLMAP sparse model folder ([`find_model_dir`]: or the one model below it).
+/// Uses the `.bin` files when `cameras.bin` exists, the `.txt` files otherwise. The scene
+/// is named after the folder (see [`SceneSource::name`]) and is not yet validated.
 pub fn read_model(dir: &Path) -> anyhow::Result<Scene> {
+    let dir = &find_model_dir(dir)?;
     let binary = dir.join("cameras.bin").exists();
     let read = |stem: &str| -> anyhow::Result<Vec<u8>> {
         let ext = if binary { "bin" } else { "txt" };
@@ -215,37 +289,65 @@ pub fn parse_cameras_txt(text: &str) -> Result<BTreeMap<CameraId, Camera>, Forma
     for (line, content) in data_lines(text) {
         let mut fields = content.split_whitespace();
         let id: CameraId = field(&mut fields, line, "camera id")?;
-        let model_name: String = field(&mut fields, line, "camera model")?;
-        let model = CameraModel::from_colmap_name(&model_name).map_err(|_| {
-            FormatError::UnsupportedCameraModel {
-                camera_id: id.into(),
-                model: model_name.clone(),
-            }
-        })?;
-        let width: u64 = field(&mut fields, line, "camera width")?;
-        let height: u64 = field(&mut fields, line, "camera height")?;
-        let params = fields
-            .map(|t| {
-                t.parse::<f64>().map_err(|_| FormatError::Syntax {
-                    line,
-                    message: format!("expected a camera parameter, found {t:?}"),
-                })
-            })
-            .collect::<Result<Vec<f64>, _>>()?;
-        if params.len() != model.param_count() {
-            return Err(FormatError::Syntax {
-                line,
-                message: format!(
-                    "{model_name} takes {} parameters, found {}",
-                    model.param_count(),
-                    params.len()
-                ),
-            });
-        }
-        let camera = camera_from_params(id.into(), model, width, height, &params)?;
+        let camera = parse_camera_fields(fields, id, line)?;
         insert_unique(&mut cameras, id, camera, "camera")?;
     }
     Ok(cameras)
+}
+
+/// Parses a camera without its id, as in `cameras.txt` and hloc's query lists:
+/// `MODEL WIDTH HEIGHT PARAMS[]` (line 1 in errors).
+pub fn parse_camera_line(text: &str) -> Result<Camera, FormatError> {
+    parse_camera_fields(text.split_whitespace(), 0, 1)
+}
+
+/// `MODEL WIDTH HEIGHT PARAMS[]` of camera `id` on `line`.
+fn parse_camera_fields(
+    mut fields: std::str::SplitWhitespace<'_>,
+    id: CameraId,
+    line: usize,
+) -> Result<Camera, FormatError> {
+    let model_name: String = field(&mut fields, line, "camera model")?;
+    let model = CameraModel::from_colmap_name(&model_name).map_err(|_| {
+        FormatError::UnsupportedCameraModel {
+            camera_id: id.into(),
+            model: model_name.clone(),
+        }
+    })?;
+    let width: u64 = field(&mut fields, line, "camera width")?;
+    let height: u64 = field(&mut fields, line, "camera height")?;
+    let params = fields
+        .map(|t| {
+            t.parse::<f64>().map_err(|_| FormatError::Syntax {
+                line,
+                message: format!("expected a camera parameter, found {t:?}"),
+            })
+        })
+        .collect::<Result<Vec<f64>, _>>()?;
+    if params.len() != model.param_count() {
+        return Err(FormatError::Syntax {
+            line,
+            message: format!(
+                "{model_name} takes {} parameters, found {}",
+                model.param_count(),
+                params.len()
+            ),
+        });
+    }
+    camera_from_params(id.into(), model, width, height, &params)
+}
+
+/// A camera as COLMAP's text line without the id: `MODEL WIDTH HEIGHT PARAMS[]`.
+pub fn camera_line(camera: &Camera) -> String {
+    let (params, count) = camera.colmap_params();
+    let params: Vec<String> = params[..count].iter().map(f64::to_string).collect();
+    format!(
+        "{} {} {} {}",
+        colmap_model_name(camera.model),
+        camera.width,
+        camera.height,
+        params.join(" ")
+    )
 }
 
 /// Parses `images.txt`: per image a header line
@@ -427,7 +529,7 @@ pub fn write_model_txt(scene: &Scene, dir: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn colmap_model_name(model: CameraModel) -> &'static str {
+pub fn colmap_model_name(model: CameraModel) -> &'static str {
     match model {
         CameraModel::SimplePinhole => "SIMPLE_PINHOLE",
         CameraModel::Pinhole => "PINHOLE",
@@ -507,6 +609,36 @@ mod tests {
             bytes.extend(p.to_le_bytes());
         }
         bytes
+    }
+
+    #[test]
+    fn model_folders_are_found_one_level_down() {
+        let root = std::env::temp_dir().join(format!("gomatch-find-model-{}", std::process::id()));
+        let model = root.join("garden/sparse/0");
+        std::fs::create_dir_all(&model).unwrap();
+        assert!(find_model_dir(&root.join("garden"))
+            .unwrap_err()
+            .to_string()
+            .contains("holds no COLMAP model"));
+        std::fs::write(model.join("cameras.txt"), "").unwrap();
+        assert_eq!(find_model_dir(&model).unwrap(), model);
+        assert_eq!(find_model_dir(&root.join("garden")).unwrap(), model);
+        assert_eq!(find_model_dir(&root.join("garden/sparse")).unwrap(), model);
+        let second = root.join("garden/sparse/1");
+        std::fs::create_dir_all(&second).unwrap();
+        std::fs::write(second.join("cameras.bin"), "").unwrap();
+        let error = find_model_dir(&root.join("garden"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("pick one of") && error.contains("sparse/1"),
+            "{error}"
+        );
+        let blob = root.join("map.bin");
+        std::fs::write(&blob, b"GMAP\x02\0\0\0").unwrap();
+        let error = find_model_dir(&blob).unwrap_err().to_string();
+        assert!(error.contains("a gomatch map blob"), "{error}");
+        std::fs::remove_dir_all(&root).unwrap();
     }
 
     #[test]

@@ -383,7 +383,7 @@ pub fn load_model(path: Option<&Path>) -> anyhow::Result<(Vec<u8>, String)> {
         .map(Path::to_path_buf)
         .or_else(|| shipped.is_file().then_some(shipped));
     if let Some(path) = path {
-        let blob = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+        let blob = gomatch_tools::files::read_model_blob(&path)?;
         return Ok((blob, path.display().to_string()));
     }
     let fixture = fixture_weights_path();
@@ -401,10 +401,12 @@ pub fn load_model(path: Option<&Path>) -> anyhow::Result<(Vec<u8>, String)> {
     Ok((blob, what))
 }
 
-/// `<repo>/../shared/reference/fixtures/weights.safetensors`.
+/// The reference fixture weights, `shared/reference/fixtures/weights.safetensors` beside the
+/// repository, found from the current folder or the executable's
+/// ([`gomatch_tools::files::find_default`]).
 pub fn fixture_weights_path() -> PathBuf {
-    let host_sim = Path::new(env!("CARGO_MANIFEST_DIR"));
-    host_sim.join("../../shared/reference/fixtures/weights.safetensors")
+    const FIXTURE: &str = "shared/reference/fixtures/weights.safetensors";
+    gomatch_tools::files::find_default(FIXTURE).unwrap_or_else(|| PathBuf::from("..").join(FIXTURE))
 }
 
 /// Runs `gomatch-sim device`.

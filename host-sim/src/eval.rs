@@ -55,7 +55,8 @@ pub struct Args {
     /// Send the ground-truth matches to the pose solver instead of the matcher's.
     #[arg(long)]
     pub oracle: bool,
-    /// Model blob (default: <repo>/models/gomatch-int8.bin).
+    /// Model blob (default: models/gomatch-int8.bin, searched from the current folder and
+    /// the executable's).
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Storage of the Sinkhorn cost matrix.
@@ -76,9 +77,9 @@ pub struct Args {
     /// do).
     #[arg(long, default_value_t = 1)]
     pub threads: usize,
-    /// JSON report.
+    /// Write the JSON report here (optional).
     #[arg(long)]
-    pub json: PathBuf,
+    pub json: Option<PathBuf>,
     /// PNG of the cumulative reprojection-error curve (recall vs px, 0-10 px).
     #[arg(long)]
     pub plot: Option<PathBuf>,
@@ -97,13 +98,10 @@ pub enum SinkhornPrecision {
     F32,
 }
 
-/// The repository's shipped model: `<repo>/models/gomatch-int8.bin`.
+/// The repository's shipped model, `models/gomatch-int8.bin`, found from the current
+/// folder or the executable's ([`gomatch_tools::files::shipped_model_path`]).
 pub fn default_model_path() -> PathBuf {
-    let host_sim = Path::new(env!("CARGO_MANIFEST_DIR"));
-    host_sim
-        .parent()
-        .unwrap_or(host_sim)
-        .join("models/gomatch-int8.bin")
+    gomatch_tools::files::shipped_model_path()
 }
 
 /// Microseconds from [`Instant`], the host's [`Clock`] for the core's stage timings.
@@ -721,8 +719,8 @@ pub fn evaluate(
 }
 
 /// Draws the cumulative reprojection-error curves (recall in percent vs threshold, 0-10
-/// px) of one or more reports, like the paper's AUC figure.
-pub fn plot_curves(curves: &[(String, Vec<f64>)], path: &Path) -> anyhow::Result<()> {
+/// px) of one or more reports, like the paper's AUC figure, titled after the scene.
+pub fn plot_curves(scene: &str, curves: &[(String, Vec<f64>)], path: &Path) -> anyhow::Result<()> {
     use plotters::prelude::*;
 
     const MAX_PX: f64 = 10.0;
@@ -734,7 +732,10 @@ pub fn plot_curves(curves: &[(String, Vec<f64>)], path: &Path) -> anyhow::Result
     chart.margin(20);
     if font {
         chart
-            .caption("Cumulative reprojection error", ("sans-serif", 24))
+            .caption(
+                format!("{scene}: cumulative reprojection error"),
+                ("sans-serif", 24),
+            )
             .x_label_area_size(45)
             .y_label_area_size(55);
     } else {
@@ -807,11 +808,14 @@ fn register_font() -> bool {
     })
 }
 
-/// Label of a report's curve: matcher, k and the three AUCs.
+/// Label of a report's curve: matcher (the model blob's file name), k and the three AUCs.
 pub fn curve_label(report: &Report) -> String {
+    let matcher = Path::new(&report.matcher)
+        .file_name()
+        .map_or(report.matcher.clone(), |n| n.to_string_lossy().into_owned());
     format!(
-        "{} k={} ({:.1}/{:.1}/{:.1})",
-        report.matcher, report.k, report.auc_1px, report.auc_5px, report.auc_10px
+        "{matcher} k={} ({:.1}/{:.1}/{:.1})",
+        report.k, report.auc_1px, report.auc_5px, report.auc_10px
     )
 }
 
@@ -896,12 +900,8 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let (matching, matcher) = if args.oracle {
         (Matching::Oracle, "oracle".to_string())
     } else {
-        blob = std::fs::read(&model_path).with_context(|| {
-            format!(
-                "reading the model {} (train one or pass --model, or use --oracle)",
-                model_path.display()
-            )
-        })?;
+        blob = gomatch_tools::files::read_model_blob(&model_path)
+            .context("pass --model PATH, or use --oracle")?;
         model = Model::from_bytes(&blob)
             .with_context(|| format!("decoding the model {}", model_path.display()))?;
         (
@@ -916,9 +916,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let mut report = evaluate(&scene, matching, &options, true)?;
     report.matcher = matcher;
     print_report(&report);
-    std::fs::write(&args.json, serde_json::to_string_pretty(&report)?)
-        .with_context(|| format!("writing {}", args.json.display()))?;
-    println!("wrote {}", args.json.display());
+    if let Some(json) = &args.json {
+        std::fs::write(json, serde_json::to_string_pretty(&report)?)
+            .with_context(|| format!("writing {}", json.display()))?;
+        println!("wrote {}", json.display());
+    }
     if let Some(plot) = &args.plot {
         let mut curves = vec![(curve_label(&report), report_errors(&report))];
         for other in &args.plot_with {
@@ -928,7 +930,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 .with_context(|| format!("parsing {}", other.display()))?;
             curves.push((curve_label(&earlier), report_errors(&earlier)));
         }
-        plot_curves(&curves, plot)?;
+        plot_curves(&report.scene, &curves, plot)?;
         println!("wrote {}", plot.display());
     }
     Ok(())

@@ -11,6 +11,8 @@ pub mod bal;
 pub mod bundler;
 pub mod colmap;
 pub mod dataset;
+pub mod keypoints;
+pub mod localize;
 pub mod map;
 pub mod parse;
 pub mod protocol;

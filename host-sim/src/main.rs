@@ -31,6 +31,8 @@ enum Command {
     Device(gomatch_sim::device::Args),
     /// Write the firmware image's embedded map, query and ground truth.
     FirmwareData(gomatch_sim::firmware_data::Args),
+    /// Localize photos (keypoints and camera) against a map blob.
+    Localize(gomatch_sim::localize::Args),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -44,6 +46,9 @@ fn main() -> anyhow::Result<()> {
         Command::Eval(args) => gomatch_sim::eval::run(&args)?,
         Command::Device(args) => gomatch_sim::device::run(&args)?,
         Command::FirmwareData(args) => gomatch_sim::firmware_data::run(&args)?,
+        Command::Localize(args) => {
+            gomatch_sim::localize::run(&args)?;
+        }
     }
     Ok(())
 }

@@ -15,6 +15,7 @@ use gomatch::map::{
 use gomatch::pose::{MAX_BEARING, MIN_DEPTH_RATIO};
 
 use crate::protocol::{audit_projections, ProjectionAudit, ProtocolParams};
+use crate::colmap::camera_line;
 use crate::scene::{ImageId, Keypoint, Scene, SceneSource};
 
 /// Bytes of one SIFT descriptor (128 x u8).
@@ -37,6 +38,8 @@ pub enum MapCommand {
     Build(BuildArgs),
     /// Print the storage breakdown of a map blob.
     Stats(StatsArgs),
+    /// Print each view of a map blob: view index, image id, name, camera and point count.
+    List(StatsArgs),
     /// Print the triangulated share per block of each image's stored keypoints: the
     /// evidence for the rank `build` stores view points in.
     Rank(RankArgs),
@@ -51,6 +54,9 @@ pub struct BuildArgs {
     /// Output map blob.
     #[arg(long)]
     pub output: PathBuf,
+    /// Leave these images (by name) out of the map, e.g. to localize them against it.
+    #[arg(long, num_args = 1..)]
+    pub exclude: Vec<String>,
 }
 
 /// Exactly one model source.
@@ -223,6 +229,7 @@ pub fn build_map(scene: &Scene) -> anyhow::Result<Vec<u8>> {
         .map(|(image, points)| {
             Ok(MapViewEntry {
                 image_id: image.id,
+                name: &image.name,
                 camera_index: *camera_index
                     .get(&image.camera_id)
                     .with_context(|| format!("image {} has no camera", image.id))?,
@@ -349,11 +356,53 @@ fn print_audit(audit: &ProjectionAudit) {
     );
 }
 
-/// Runs `map build` or `map stats`.
+/// The scene without the images named in `names`; fails on a name the scene does not
+/// hold. Points only those images observed keep no observation, so [`build_map`] leaves
+/// them out.
+pub fn exclude_images(scene: &Scene, names: &[String]) -> anyhow::Result<Scene> {
+    let mut kept = scene.clone();
+    for name in names {
+        let id = scene
+            .images
+            .values()
+            .find(|image| &image.name == name)
+            .map(|image| image.id)
+            .with_context(|| format!("{}: no image named {name:?}", scene.name))?;
+        kept.images.remove(&id);
+    }
+    for point in kept.points.values_mut() {
+        point
+            .track
+            .retain(|element| kept.images.contains_key(&element.image_id));
+    }
+    Ok(kept)
+}
+
+/// Prints the cameras of a map (index and COLMAP line) and one line per view: index,
+/// image id, camera index, point count and name.
+fn print_views(map: &Map<'_>) -> anyhow::Result<()> {
+    for index in 0..map.camera_count() {
+        println!("camera {index}: {}", camera_line(&map.camera(index)?));
+    }
+    println!("view image_id camera points name");
+    for index in 0..map.view_count() {
+        let view = map.view(index)?;
+        println!(
+            "{index} {} {} {} {}",
+            view.image_id,
+            view.camera_index,
+            map.view_points(index)?.len(),
+            map.view_name(index)?
+        );
+    }
+    Ok(())
+}
+
+/// Runs `map build`, `map stats`, `map list` or `map rank`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     match &args.command {
         MapCommand::Build(build) => {
-            let scene = build.source.source()?.load()?;
+            let scene = exclude_images(&build.source.source()?.load()?, &build.exclude)?;
             let blob = build_map(&scene)?;
             std::fs::write(&build.output, &blob)
                 .with_context(|| format!("writing {}", build.output.display()))?;
@@ -371,11 +420,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             ));
         }
         MapCommand::Stats(stats) => {
-            let blob = std::fs::read(&stats.map)
-                .with_context(|| format!("reading {}", stats.map.display()))?;
-            let map = Map::from_bytes(&blob)
-                .with_context(|| format!("decoding {}", stats.map.display()))?;
+            let blob = gomatch_tools::files::read_map_blob(&stats.map)?;
+            let map = Map::from_bytes(&blob)?;
             print_stats(&StorageBreakdown::of(&map, blob.len()));
+        }
+        MapCommand::List(list) => {
+            let blob = gomatch_tools::files::read_map_blob(&list.map)?;
+            print_views(&Map::from_bytes(&blob)?)?;
         }
         MapCommand::Rank(rank) => print_rank(&rank.source.source()?.load()?, rank.block),
     }

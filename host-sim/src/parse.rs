@@ -19,6 +19,17 @@ pub enum FormatError {
         /// Bytes left in the file.
         available: usize,
     },
+    /// A record count no COLMAP file holds (above 2^32, e.g. 2^64 - 1): the file is
+    /// corrupt or not a COLMAP binary file.
+    #[error("corrupt file: {what} at offset {offset} reads {count}, not a plausible count (is this a COLMAP binary file?)")]
+    ImplausibleCount {
+        /// The count field.
+        what: &'static str,
+        /// Byte offset of the field.
+        offset: usize,
+        /// The value read.
+        count: u64,
+    },
     /// A binary file goes on after its last record.
     #[error("{count} unexpected bytes after the last record at offset {offset}")]
     TrailingBytes {
@@ -164,7 +175,9 @@ impl<'a> ByteReader<'a> {
 
     /// Reads a record count and checks that `count` records of at least `min_record_bytes`
     /// each fit in the rest of the file, so a corrupt count cannot trigger a huge
-    /// allocation.
+    /// allocation. A count above 2^32 (COLMAP's ids are 32-bit; no image holds that many
+    /// keypoints) is [`FormatError::ImplausibleCount`], a smaller one that does not fit
+    /// [`FormatError::Truncated`].
     pub fn count(
         &mut self,
         what: &'static str,
@@ -172,6 +185,13 @@ impl<'a> ByteReader<'a> {
     ) -> Result<usize, FormatError> {
         let offset = self.offset;
         let count = self.u64(what)?;
+        if count > u64::from(u32::MAX) {
+            return Err(FormatError::ImplausibleCount {
+                what,
+                offset,
+                count,
+            });
+        }
         let available = self.remaining();
         let needed = usize::try_from(count)
             .ok()
@@ -341,6 +361,18 @@ mod tests {
     #[test]
     fn huge_counts_are_refused_before_allocating() {
         let data = u64::MAX.to_le_bytes();
+        let mut reader = ByteReader::new(&data);
+        let error = reader.count("records", 8).unwrap_err();
+        assert_eq!(
+            error,
+            FormatError::ImplausibleCount {
+                what: "records",
+                offset: 0,
+                count: u64::MAX
+            }
+        );
+        assert!(error.to_string().starts_with("corrupt file"), "{error}");
+        let data = 3u64.to_le_bytes();
         let mut reader = ByteReader::new(&data);
         assert!(matches!(
             reader.count("records", 8),

@@ -171,7 +171,7 @@ fn plot_writes_a_png_of_the_curves() {
         (curve_label(&report), report_errors(&report)),
         (curve_label(&k1), report_errors(&k1)),
     ];
-    plot_curves(&curves, &path).unwrap();
+    plot_curves(&report.scene, &curves, &path).unwrap();
     let bytes = std::fs::read(&path).unwrap();
     std::fs::remove_file(&path).unwrap();
     assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");

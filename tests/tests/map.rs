@@ -7,7 +7,7 @@ use std::sync::OnceLock;
 
 use gomatch::map::{crc32, Map, HEADER_BYTES};
 use gomatch::Error;
-use gomatch_sim::map::build_map;
+use gomatch_sim::map::{build_map, exclude_images};
 use gomatch_sim::scene::{Scene, SceneSource};
 use gomatch_sim::synthetic::synthetic_scene;
 use proptest::prelude::*;
@@ -35,6 +35,7 @@ fn check_round_trip(scene: &Scene) {
     for (v, image) in scene.images.values().enumerate() {
         let view = map.view(v).unwrap();
         assert_eq!(view.image_id, image.id);
+        assert_eq!(map.view_name(v).unwrap(), image.name);
         assert_eq!(
             map.camera(view.camera_index as usize).unwrap(),
             scene.cameras[&image.camera_id]
@@ -55,6 +56,45 @@ fn check_round_trip(scene: &Scene) {
 #[test]
 fn synthetic_scene_round_trips_through_the_map() {
     check_round_trip(&synthetic_scene(2, 0));
+}
+
+#[test]
+fn excluded_images_leave_the_map_with_the_points_only_they_observe() {
+    let scene = synthetic_scene(2, 0);
+    let names: Vec<String> = scene
+        .images
+        .values()
+        .take(2)
+        .map(|i| i.name.clone())
+        .collect();
+    let kept = exclude_images(&scene, &names).unwrap();
+    assert_eq!(kept.images.len(), scene.images.len() - 2);
+    check_round_trip(&kept);
+    let map_blob = build_map(&kept).unwrap();
+    let map = Map::from_bytes(&map_blob).unwrap();
+    let map_names: BTreeSet<&str> = (0..map.view_count())
+        .map(|v| map.view_name(v).unwrap())
+        .collect();
+    assert!(names.iter().all(|n| !map_names.contains(n.as_str())));
+    let seen_by_kept = scene
+        .points
+        .values()
+        .filter(|p| {
+            p.track
+                .iter()
+                .any(|e| kept.images.contains_key(&e.image_id))
+        })
+        .count();
+    assert_eq!(map.point_count(), seen_by_kept);
+    assert!(
+        seen_by_kept
+            < scene
+                .points
+                .values()
+                .filter(|p| !p.track.is_empty())
+                .count()
+    );
+    assert!(exclude_images(&scene, &["no such image".into()]).is_err());
 }
 
 #[test]

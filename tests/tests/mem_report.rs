@@ -9,8 +9,8 @@ use gomatch::weights::Precision;
 use gomatch::Localizer;
 use gomatch_tools::convert::PrecisionArg;
 use gomatch_tools::mem_report::{
-    budget_violations, markdown, measure, report, Args, CountingAllocator, Row, Sinkhorn,
-    BUILTIN_MAP,
+    budget_violations, human_bytes, markdown, measure, report, Args, CountingAllocator, Row,
+    Sinkhorn, BUILTIN_MAP,
 };
 use half::f16;
 
@@ -168,6 +168,48 @@ fn memory_goals_hold() {
     assert!(large.stack_bytes <= 64 << 10, "{large:?}");
     assert!(large.flash_model_bytes <= 3 << 19, "{large:?}");
     assert_eq!((large.views_used, large.heap_bytes), (10, 0));
+}
+
+/// A value given twice is measured once: no duplicate rows.
+#[test]
+fn repeated_values_give_one_row() {
+    let Some(weights) = fixture_weights() else {
+        return;
+    };
+    let report = report(&args(
+        &[128, 128],
+        &[1, 1],
+        &[Sinkhorn::F16, Sinkhorn::F16],
+        weights,
+    ))
+    .expect("report");
+    assert_eq!(report.rows.len(), 1, "{:?}", report.rows);
+}
+
+#[test]
+fn sizes_print_in_binary_units() {
+    assert_eq!(human_bytes(512), "512 B");
+    assert_eq!(human_bytes(33_167), "32.4 KiB");
+    assert_eq!(human_bytes(6 << 20), "6.00 MiB");
+    let row = Row {
+        capacity: 1024,
+        views: 10,
+        precision: "int8",
+        sinkhorn: "f16",
+        ram_bytes: 5_000_000,
+        stack_bytes: 12_000,
+        heap_bytes: 0,
+        flash_model_bytes: 1_178_845,
+        flash_map_bytes: 33_167,
+        link_bytes: 20_000,
+        keypoints: 1024,
+        views_used: 10,
+    };
+    let table = markdown(&[row]);
+    assert!(
+        table.contains("| 1024 | 10 | int8 | f16 | 4.77 MiB | 11.7 KiB | 0 B | 1.12 MiB | 32.4 KiB | 19.5 KiB |"),
+        "{table}"
+    );
 }
 
 #[test]

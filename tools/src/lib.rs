@@ -4,6 +4,7 @@
 pub mod agreement;
 pub mod calibration;
 pub mod convert;
+pub mod files;
 pub mod mem_report;
 pub mod quantize;
 pub mod sensitivity;

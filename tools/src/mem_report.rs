@@ -36,9 +36,11 @@ use gomatch::{
     RansacConfig,
 };
 use half::f16;
+use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
 use crate::convert::{convert, PrecisionArg};
+use crate::files::{find_default, read_map_blob, read_model_blob};
 
 /// Capacities reported by default.
 pub const CAPACITIES: [usize; 4] = [128, 256, 512, 1024];
@@ -464,25 +466,15 @@ workspaces! {
 // ---------------------------------------------------------------------------------------
 // Blobs.
 
-fn repo_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .map_or_else(|| PathBuf::from("."), Path::to_path_buf)
-}
-
 /// Model blobs by precision.
 pub type Blobs = Vec<(Precision, Vec<u8>)>;
 
 /// The model blob of each wanted precision, and a description of the source.
 pub fn model_blobs(path: Option<&Path>, precisions: &[Precision]) -> Result<(Blobs, String)> {
-    let root = repo_root();
     let candidates = [
+        ("models/gomatch.safetensors", "shipped trained model"),
         (
-            root.join("models/gomatch.safetensors"),
-            "shipped trained model",
-        ),
-        (
-            root.join("../shared/reference/fixtures/weights.safetensors"),
+            "shared/reference/fixtures/weights.safetensors",
             "reference fixture weights (random, untrained)",
         ),
     ];
@@ -490,11 +482,12 @@ pub fn model_blobs(path: Option<&Path>, precisions: &[Precision]) -> Result<(Blo
         Some(p) => (p.to_path_buf(), "given"),
         None => candidates
             .into_iter()
-            .find(|(p, _)| p.is_file())
-            .context("no model: models/gomatch.safetensors and the reference fixture weights are absent; pass --model")?,
+            .find_map(|(relative, what)| Some((find_default(relative)?, what)))
+            .context("no model: models/gomatch.safetensors and shared/reference/fixtures/weights.safetensors are not found from the current folder or the executable's; pass --model")?,
     };
     let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
     if bytes.starts_with(&MAGIC) {
+        let bytes = read_model_blob(&path)?;
         let model = Model::from_bytes(&bytes).map_err(|e| anyhow::anyhow!("model blob: {e}"))?;
         let precision = model.precision();
         ensure!(
@@ -519,10 +512,7 @@ pub fn model_blobs(path: Option<&Path>, precisions: &[Precision]) -> Result<(Blo
 /// The map blob and a description of it.
 pub fn map_blob(path: Option<&Path>) -> Result<(Vec<u8>, String)> {
     match path {
-        Some(p) => Ok((
-            std::fs::read(p).with_context(|| format!("reading {}", p.display()))?,
-            p.display().to_string(),
-        )),
+        Some(p) => Ok((read_map_blob(p)?, p.display().to_string())),
         None => Ok((
             BUILTIN_MAP.to_vec(),
             "built-in synthetic scene map (firmware/data/map.bin)".to_string(),
@@ -530,12 +520,25 @@ pub fn map_blob(path: Option<&Path>) -> Result<(Vec<u8>, String)> {
     }
 }
 
-fn or_default<T: Clone>(given: &[T], default: &[T]) -> Vec<T> {
-    if given.is_empty() {
-        default.to_vec()
-    } else {
-        given.to_vec()
+/// The values given (each once, in the order first given), or `default`.
+fn or_default<T: Clone + PartialEq>(given: &[T], default: &[T]) -> Vec<T> {
+    let values = if given.is_empty() { default } else { given };
+    let mut unique: Vec<T> = Vec::new();
+    for value in values {
+        if !unique.contains(value) {
+            unique.push(value.clone());
+        }
     }
+    unique
+}
+
+/// A progress bar over `rows` measurements, on standard error.
+fn progress_bar(rows: usize) -> Result<ProgressBar> {
+    let bar = ProgressBar::new(rows as u64).with_style(
+        ProgressStyle::with_template("{bar:40} {pos}/{len} configurations {elapsed} {msg}")
+            .context("progress bar template")?,
+    );
+    Ok(bar)
 }
 
 /// Measures every requested configuration.
@@ -555,6 +558,7 @@ pub fn report(args: &Args) -> Result<Report> {
     let (blobs, model_source) = model_blobs(args.model.as_deref(), &precisions)?;
     let (map_bytes, map_source) = map_blob(args.map.as_deref())?;
     let map = Map::from_bytes(&map_bytes).map_err(|e| anyhow::anyhow!("map: {e}"))?;
+    let progress = progress_bar(capacities.len() * views.len() * blobs.len() * storages.len())?;
     let mut rows = Vec::new();
     for &capacity in &capacities {
         let query = map_query(&map, capacity)?;
@@ -563,6 +567,11 @@ pub fn report(args: &Args) -> Result<Report> {
                 let model =
                     Model::from_bytes(blob).map_err(|e| anyhow::anyhow!("model blob: {e}"))?;
                 for &sinkhorn in &storages {
+                    progress.set_message(format!(
+                        "N={capacity} k={k} {} weights, {} Sinkhorn",
+                        precision_name(*precision),
+                        sinkhorn.name()
+                    ));
                     let (ram, link, localization, usage) =
                         measure_capacity(capacity, sinkhorn, &model, &map, &query, k)?;
                     rows.push(Row {
@@ -579,10 +588,12 @@ pub fn report(args: &Args) -> Result<Report> {
                         keypoints: query.pixels.len(),
                         views_used: localization.views_used,
                     });
+                    progress.inc(1);
                 }
             }
         }
     }
+    progress.finish_and_clear();
     Ok(Report {
         rows,
         model_source,
@@ -619,24 +630,38 @@ pub fn budget_violations(rows: &[Row], args: &Args) -> Vec<String> {
     violations
 }
 
-/// The rows as a markdown table.
+/// A byte count in B, KiB or MiB (binary units; the JSON keeps exact bytes).
+pub fn human_bytes(bytes: u64) -> String {
+    const KIB: f64 = 1024.0;
+    let b = bytes as f64;
+    if b >= KIB * KIB {
+        format!("{:.2} MiB", b / (KIB * KIB))
+    } else if b >= KIB {
+        format!("{:.1} KiB", b / KIB)
+    } else {
+        format!("{bytes} B")
+    }
+}
+
+/// The rows as a markdown table, sizes in B / KiB / MiB.
 pub fn markdown(rows: &[Row]) -> String {
     let mut out = String::from(
-        "| N | k | weights | Sinkhorn | RAM (B) | stack (B) | heap (B) | flash model (B) | flash map (B) | link buffers (B) |\n|---|---|---|---|---|---|---|---|---|---|\n",
+        "| N | k | weights | Sinkhorn | RAM | stack | heap | flash model | flash map | link buffers |\n|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in rows {
-        out.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
-            r.capacity,
-            r.views,
-            r.precision,
-            r.sinkhorn,
-            r.ram_bytes,
-            r.stack_bytes,
+        let sizes = [
+            r.ram_bytes as u64,
+            r.stack_bytes as u64,
             r.heap_bytes,
-            r.flash_model_bytes,
-            r.flash_map_bytes,
-            r.link_bytes
+            r.flash_model_bytes as u64,
+            r.flash_map_bytes as u64,
+            r.link_bytes as u64,
+        ]
+        .map(human_bytes)
+        .join(" | ");
+        out.push_str(&format!(
+            "| {} | {} | {} | {} | {sizes} |\n",
+            r.capacity, r.views, r.precision, r.sinkhorn,
         ));
     }
     out

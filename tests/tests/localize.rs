@@ -1,0 +1,316 @@
+//! `gomatch-sim localize` end to end on a real model: colmap/mouse (a validation scene the
+//! shipped model never trained on) without 8 of its images becomes a map; those images'
+//! keypoints go to text files and to a COLMAP `database.db`; the command localizes them with
+//! the shipped model and the poses are compared with the model's.
+//!
+//! The views of each query come from a pairs file listing its 10 kept images sharing the most
+//! 3D points with it in the full model: a stand-in for image retrieval, which the user's own
+//! photos would get from a retrieval step (hloc's pairs).
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use clap::Parser;
+use gomatch::{Camera, Pose};
+use gomatch_sim::colmap::camera_line;
+use gomatch_sim::eval::TimingsMs;
+use gomatch_sim::localize::{parse_pose, run, Args, ColmapPose, LocalizeReport, QueryOutcome};
+use gomatch_sim::map::{build_map, exclude_images};
+use gomatch_sim::scene::{Image, Scene, SceneSource};
+use rusqlite::Connection;
+
+/// Mean pixel distance between the image's triangulated 3D points projected with the true
+/// and the estimated pose (the evaluation's reprojection error).
+fn reprojection_px(scene: &Scene, image: &Image, estimate: &Pose) -> f64 {
+    let camera: &Camera = &scene.cameras[&image.camera_id];
+    let project = |pose: &Pose, xyz| {
+        let bearing = pose.bearing(xyz, 0).ok()?;
+        camera.bearing_to_pixel(bearing).ok()
+    };
+    let errors: Vec<f64> = image
+        .keypoints
+        .iter()
+        .filter_map(|k| k.point3d)
+        .filter_map(|id| {
+            let xyz = &scene.points[&id].xyz;
+            let (a, b) = (project(&image.pose, xyz)?, project(estimate, xyz)?);
+            Some((a[0] - b[0]).hypot(a[1] - b[1]))
+        })
+        .collect();
+    if errors.is_empty() {
+        return f64::INFINITY;
+    }
+    errors.iter().sum::<f64>() / errors.len() as f64
+}
+
+/// Per excluded image, the 10 kept images sharing the most 3D points with it.
+fn pairs(queries: &[&Image], kept: &Scene) -> String {
+    let mut text = String::new();
+    for query in queries {
+        let points: BTreeSet<u64> = query.keypoints.iter().filter_map(|k| k.point3d).collect();
+        let mut shared: Vec<(usize, &str)> = kept
+            .images
+            .values()
+            .map(|image| {
+                let seen: BTreeSet<u64> =
+                    image.keypoints.iter().filter_map(|k| k.point3d).collect();
+                (seen.intersection(&points).count(), image.name.as_str())
+            })
+            .filter(|(n, _)| *n > 0)
+            .collect();
+        shared.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(b.1)));
+        for (_, name) in shared.iter().take(10) {
+            writeln!(text, "{} {name}", query.name).unwrap();
+        }
+    }
+    text
+}
+
+/// Keypoints as `x y score`, the score rising with the stored index: COLMAP's SIFT stores
+/// fine to coarse scales, so the best (largest) come last (README "Protocol").
+fn keypoint_text(image: &Image) -> String {
+    image
+        .keypoints
+        .iter()
+        .enumerate()
+        .map(|(i, k)| format!("{} {} {i}\n", k.pixel[0], k.pixel[1]))
+        .collect()
+}
+
+/// A COLMAP `database.db` with COLMAP's `cameras`, `images` and `keypoints` tables holding
+/// the queries (keypoints as 2 columns `x y`, which the reader ranks last stored first).
+fn write_database(path: &Path, scene: &Scene, queries: &[&Image]) {
+    let db = Connection::open(path).unwrap();
+    db.execute_batch(
+        "CREATE TABLE cameras (camera_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, \
+         model INTEGER NOT NULL, width INTEGER NOT NULL, height INTEGER NOT NULL, \
+         params BLOB, prior_focal_length INTEGER NOT NULL);
+         CREATE TABLE images (image_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, \
+         name TEXT NOT NULL UNIQUE, camera_id INTEGER NOT NULL, \
+         CONSTRAINT image_id_check CHECK(image_id >= 0 and image_id < 2147483647), \
+         FOREIGN KEY(camera_id) REFERENCES cameras(camera_id));
+         CREATE TABLE keypoints (image_id INTEGER PRIMARY KEY NOT NULL, \
+         rows INTEGER NOT NULL, cols INTEGER NOT NULL, data BLOB, \
+         FOREIGN KEY(image_id) REFERENCES images(image_id) ON DELETE CASCADE);",
+    )
+    .unwrap();
+    for (id, camera) in &scene.cameras {
+        let (params, count) = camera.colmap_params();
+        let blob: Vec<u8> = params[..count]
+            .iter()
+            .flat_map(|p| p.to_le_bytes())
+            .collect();
+        db.execute(
+            "INSERT INTO cameras VALUES (?1, ?2, ?3, ?4, ?5, 0)",
+            rusqlite::params![
+                id,
+                camera.model.colmap_id(),
+                camera.width,
+                camera.height,
+                blob
+            ],
+        )
+        .unwrap();
+    }
+    for image in queries {
+        db.execute(
+            "INSERT INTO images VALUES (?1, ?2, ?3)",
+            rusqlite::params![image.id, image.name, image.camera_id],
+        )
+        .unwrap();
+        let data: Vec<u8> = image
+            .keypoints
+            .iter()
+            .flat_map(|k| [k.pixel[0] as f32, k.pixel[1] as f32])
+            .flat_map(f32::to_le_bytes)
+            .collect();
+        db.execute(
+            "INSERT INTO keypoints VALUES (?1, ?2, 2, ?3)",
+            rusqlite::params![image.id, image.keypoints.len(), data],
+        )
+        .unwrap();
+    }
+}
+
+fn localize(args: &[&str]) -> LocalizeReport {
+    let args = Args::try_parse_from(std::iter::once("localize").chain(args.iter().copied()))
+        .unwrap_or_else(|e| panic!("{e}"));
+    run(&args).unwrap()
+}
+
+/// Per query name: whether its pose is within 10 px (reprojection error) of the model's.
+fn score(scene: &Scene, report: &LocalizeReport) -> BTreeMap<String, Option<f64>> {
+    report
+        .per_query
+        .iter()
+        .map(|q| {
+            let image = scene.images.values().find(|i| i.name == q.name).unwrap();
+            let error = q.pose.map(|p| {
+                let values = p.qvec.iter().chain(&p.tvec).map(f64::to_string);
+                let pose = parse_pose(&values.collect::<Vec<_>>().join(" ")).unwrap();
+                reprojection_px(scene, image, &pose)
+            });
+            (q.name.clone(), error)
+        })
+        .collect()
+}
+
+#[test]
+fn held_out_images_of_a_real_model_are_localized_from_text_and_database_keypoints() {
+    let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let data = manifest.join("../../shared/data/colmap/mouse");
+    let model = manifest.join("../models/gomatch-int8.bin");
+    for needed in [&data, &model] {
+        if !needed.exists() {
+            println!("SKIPPED: {} is absent", needed.display());
+            return;
+        }
+    }
+    let scene = SceneSource::Colmap(data).load().unwrap();
+    let queries: Vec<&Image> = scene
+        .images
+        .values()
+        .enumerate()
+        .filter(|(i, _)| i % 7 == 3)
+        .map(|(_, image)| image)
+        .collect();
+    let names: Vec<String> = queries.iter().map(|i| i.name.clone()).collect();
+    let kept = exclude_images(&scene, &names).unwrap();
+    assert_eq!(kept.images.len(), scene.images.len() - queries.len());
+
+    let dir = std::env::temp_dir().join(format!("gomatch-localize-{}", std::process::id()));
+    let keypoint_dir = dir.join("keypoints");
+    std::fs::create_dir_all(&keypoint_dir).unwrap();
+    let file = |name: &str| -> PathBuf { dir.join(name) };
+    std::fs::write(file("map.bin"), build_map(&kept).unwrap()).unwrap();
+    std::fs::write(file("pairs.txt"), pairs(&queries, &kept)).unwrap();
+    let mut list = String::new();
+    for image in &queries {
+        let camera = &scene.cameras[&image.camera_id];
+        writeln!(list, "{} {}", image.name, camera_line(camera)).unwrap();
+        let text = keypoint_text(image);
+        std::fs::write(keypoint_dir.join(format!("{}.txt", image.name)), text).unwrap();
+    }
+    std::fs::write(file("queries.txt"), &list).unwrap();
+    write_database(&file("database.db"), &scene, &queries);
+
+    let path = |name: &str| file(name).display().to_string();
+    let keypoint_dir = keypoint_dir.display().to_string();
+    let model = model.display().to_string();
+    let run_with = |extra: &[&str]| {
+        let common = ["--map", &path("map.bin"), "--model", &model];
+        let pairs = ["--pairs", &path("pairs.txt")];
+        localize(&[&common[..], &pairs[..], extra].concat())
+    };
+    let (queries_txt, database) = (path("queries.txt"), path("database.db"));
+    let (results, report) = (path("results.txt"), path("report.json"));
+    let from_text = run_with(&[
+        "--query-list",
+        &queries_txt,
+        "--keypoint-dir",
+        &keypoint_dir,
+        "--results",
+        &results,
+        "--json",
+        &report,
+    ]);
+    // The database with the first two queries of the list (each query takes seconds), and
+    // with the camera from the database instead of the query list.
+    let first_two: String = list.lines().take(2).map(|l| format!("{l}\n")).collect();
+    std::fs::write(file("two.txt"), first_two).unwrap();
+    let from_database = run_with(&["--query-list", &path("two.txt"), "--database", &database]);
+    let single = run_with(&["--query", &names[0], "--database", &database]);
+
+    // Same keypoints kept in the same order: the same results (timings aside) from text
+    // and database.
+    let untimed = |outcomes: &[QueryOutcome]| -> Vec<QueryOutcome> {
+        outcomes
+            .iter()
+            .map(|q| QueryOutcome {
+                timings_ms: TimingsMs::default(),
+                ..q.clone()
+            })
+            .collect()
+    };
+    assert_eq!(
+        untimed(&from_database.per_query),
+        untimed(&from_text.per_query[..2])
+    );
+    assert_eq!(
+        untimed(&single.per_query),
+        untimed(&from_text.per_query[..1])
+    );
+
+    let errors = score(&scene, &from_text);
+    for (name, error) in &errors {
+        let q = from_text
+            .per_query
+            .iter()
+            .find(|q| &q.name == name)
+            .unwrap();
+        println!(
+            "{name}: {} inliers, reprojection error {}",
+            q.counts.inliers,
+            error.map_or("- (not localized)".into(), |e| format!("{e:.2} px"))
+        );
+        assert_eq!(
+            q.keypoints_total,
+            scene
+                .images
+                .values()
+                .find(|i| &i.name == name)
+                .unwrap()
+                .keypoints
+                .len()
+        );
+        assert!(q.keypoints_used <= 1024);
+    }
+    // Measured 2026-12-01 (acceptance: at least 4 inliers): 6 of 8 within 10 px (0.13 to
+    // 6.20 px); the other two were accepted with 5 and 6 inliers, 361 and 308 px off.
+    let within = errors
+        .values()
+        .filter(|e| e.is_some_and(|e| e < 10.0))
+        .count();
+    println!("{within} of {} held-out images within 10 px", errors.len());
+    assert!(
+        within * 2 > errors.len(),
+        "only {within} of {} within 10 px",
+        errors.len()
+    );
+
+    // The results file has one hloc line per localized query, matching the JSON.
+    let results = std::fs::read_to_string(file("results.txt")).unwrap();
+    let lines: Vec<&str> = results.lines().collect();
+    assert_eq!(lines.len(), from_text.localized);
+    for line in lines {
+        let (name, pose) = line.split_once(' ').unwrap();
+        let q = from_text.per_query.iter().find(|q| q.name == name).unwrap();
+        let values: Vec<f64> = pose.split(' ').map(|v| v.parse().unwrap()).collect();
+        let expected = q.pose.unwrap();
+        assert_eq!(values[..4], expected.qvec);
+        assert_eq!(values[4..], expected.tvec);
+    }
+    // The JSON file is the report; it reads back (floats to within their printing).
+    let json = std::fs::read_to_string(file("report.json")).unwrap();
+    assert_eq!(json, serde_json::to_string_pretty(&from_text).unwrap());
+    let parsed: LocalizeReport = serde_json::from_str(&json).unwrap();
+    assert_eq!(parsed.per_query.len(), from_text.per_query.len());
+    for (a, b) in parsed.per_query.iter().zip(&from_text.per_query) {
+        assert_eq!((&a.name, &a.views, a.counts), (&b.name, &b.views, b.counts));
+        let values = |p: ColmapPose| p.qvec.into_iter().chain(p.tvec);
+        match (a.pose, b.pose) {
+            (Some(pa), Some(pb)) => {
+                assert!(values(pa)
+                    .zip(values(pb))
+                    .all(|(x, y)| (x - y).abs() < 1e-12));
+            }
+            (pa, pb) => assert_eq!(pa.is_some(), pb.is_some()),
+        }
+        let pairs = |q: &QueryOutcome| -> Vec<(usize, u32)> {
+            q.inliers.iter().map(|i| (i.keypoint, i.point)).collect()
+        };
+        assert_eq!(pairs(a), pairs(b));
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
