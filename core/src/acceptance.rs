@@ -17,7 +17,7 @@
 //! | 5 | views whose matches are among the inliers | agreement between database views |
 //! | 6 | share of the non-inliers within [`LOOSE_FACTOR`] x the threshold | near-misses of a right pose are noisy true matches |
 //!
-//! The weights are fitted on the training scenes by `tools/fit_acceptance.py` from
+//! The weights are fitted on training scenes by `gomatch-sim fit-acceptance` from
 //! `gomatch-sim eval` reports (see the README, "Acceptance rule").
 
 use serde::{Deserialize, Serialize};
@@ -90,12 +90,20 @@ impl Default for AcceptanceRule {
 }
 
 impl AcceptanceRule {
-    /// The rule fitted on the training scenes with the shipped model
-    /// (`tools/fit_acceptance.py`, its output `tools/acceptance.json`).
+    /// The rule fitted on seven training scenes with the shipped model
+    /// (`gomatch-sim fit-acceptance`, `models/acceptance/rule.json`).
     pub const FITTED: Self = Self {
-        bias: 0.0,
-        weights: [0.0; FEATURES],
-        min_confidence: 0.0,
+        bias: -6.404_428_5,
+        weights: [
+            1.343_300_2,
+            1.961_809_5,
+            13.752_093,
+            6.498_537,
+            10.114_199,
+            0.152_243_94,
+            5.944_038,
+        ],
+        min_confidence: 0.878_130_1,
     };
 
     /// Accepts every pose (confidence 0.5, threshold 0): the bare `min_inliers` rule.
@@ -151,7 +159,11 @@ pub(crate) struct PoseSupport<'a> {
 /// Gathers the [`Evidence`] of a pose: inlier keypoints' spread over the query image
 /// (`keypoints` in pixels, `camera` for the image size), their probabilities and views,
 /// and the support at [`LOOSE_FACTOR`] x the threshold.
-pub(crate) fn gather(support: &PoseSupport<'_>, keypoints: &[[f32; 2]], camera: &Camera) -> Evidence {
+pub(crate) fn gather(
+    support: &PoseSupport<'_>,
+    keypoints: &[[f32; 2]],
+    camera: &Camera,
+) -> Evidence {
     let (width, height) = (camera.width.max(1) as f32, camera.height.max(1) as f32);
     let loose = LOOSE_FACTOR * support.threshold;
     let loose2 = loose * loose;
@@ -168,7 +180,9 @@ pub(crate) fn gather(support: &PoseSupport<'_>, keypoints: &[[f32; 2]], camera: 
         let projected = support
             .pose
             .bearing(&nalgebra::Vector3::new(point[0], point[1], point[2]), index);
-        let (dx, dy) = projected.map_or((f64::INFINITY, 0.0), |b| (b[0] - bearing[0], b[1] - bearing[1]));
+        let (dx, dy) = projected.map_or((f64::INFINITY, 0.0), |b| {
+            (b[0] - bearing[0], b[1] - bearing[1])
+        });
         if dx * dx + dy * dy < loose2 {
             evidence.loose += 1;
         }
@@ -234,7 +248,10 @@ mod tests {
         assert!((0.0..0.5).contains(&weak), "{weak}");
         assert!((0.5..=1.0).contains(&strong), "{strong}");
         assert!(!rule.accepts(weak) && rule.accepts(strong));
-        assert_eq!(AcceptanceRule::ACCEPT_ALL.confidence(&evidence(4, 4, 1)), 0.5);
+        assert_eq!(
+            AcceptanceRule::ACCEPT_ALL.confidence(&evidence(4, 4, 1)),
+            0.5
+        );
         assert!(AcceptanceRule::ACCEPT_ALL.accepts(0.0));
         // Bit-identical on repetition.
         assert_eq!(
@@ -267,7 +284,13 @@ mod tests {
         let pose = Pose::identity();
         // Four matches: three inliers at three corners (views 0, 0, 2), one outlier whose
         // bearing is off by 2x the threshold (within the loose radius) and one off by far.
-        let keypoints = [[10.0, 10.0], [790.0, 10.0], [10.0, 590.0], [400.0, 300.0], [5.0, 5.0]];
+        let keypoints = [
+            [10.0, 10.0],
+            [790.0, 10.0],
+            [10.0, 590.0],
+            [400.0, 300.0],
+            [5.0, 5.0],
+        ];
         let matches: [Correspondence; 5] = core::array::from_fn(|i| Correspondence {
             keypoint: i as u16,
             point: i as u32,
@@ -289,9 +312,16 @@ mod tests {
             threshold: 1e-3,
         };
         let e = gather(&support, &keypoints, &camera);
-        assert_eq!((e.merged, e.inliers, e.loose, e.cells, e.views), (5, 3, 4, 3, 2));
+        assert_eq!(
+            (e.merged, e.inliers, e.loose, e.cells, e.views),
+            (5, 3, 4, 3, 2)
+        );
         assert!((e.mean_probability - 0.7).abs() < 1e-6);
         let expected_area = (780.0 / 800.0) * (580.0 / 600.0);
-        assert!((e.bbox_area - expected_area).abs() < 1e-6, "{}", e.bbox_area);
+        assert!(
+            (e.bbox_area - expected_area).abs() < 1e-6,
+            "{}",
+            e.bbox_area
+        );
     }
 }

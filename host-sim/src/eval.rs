@@ -92,7 +92,7 @@ pub struct Args {
     #[arg(long, requires = "plot")]
     pub plot_with: Vec<PathBuf>,
     /// Acceptance rule to use instead of the built-in one: a JSON file as written by
-    /// `tools/fit_acceptance.py` (`bias`, `weights`, `min_confidence`).
+    /// `gomatch-sim fit-acceptance` (`bias`, `weights`, `min_confidence`).
     #[arg(long)]
     pub acceptance: Option<PathBuf>,
 }
@@ -255,7 +255,8 @@ pub struct QueryResult {
 /// A pose is right when its reprojection error is at most [`WRONG_REPROJECTION_PX`] and
 /// its rotation error at most [`WRONG_ROTATION_DEG`].
 pub fn pose_is_right(reprojection_px: Option<f64>, rotation_deg: f64) -> bool {
-    reprojection_px.is_some_and(|e| e <= WRONG_REPROJECTION_PX) && rotation_deg <= WRONG_ROTATION_DEG
+    reprojection_px.is_some_and(|e| e <= WRONG_REPROJECTION_PX)
+        && rotation_deg <= WRONG_ROTATION_DEG
 }
 
 /// How the acceptance rule did on a scene. A *candidate* is a query for which RANSAC
@@ -285,7 +286,10 @@ pub struct AcceptanceSummary {
 impl AcceptanceSummary {
     /// Counts over the queries of a report.
     pub fn of(rule: AcceptanceRule, per_query: &[QueryResult]) -> Self {
-        let candidates = per_query.iter().filter(|q| q.candidate_right.is_some()).count();
+        let candidates = per_query
+            .iter()
+            .filter(|q| q.candidate_right.is_some())
+            .count();
         let right = |q: &QueryResult| q.candidate_right == Some(true);
         let candidates_right = per_query.iter().filter(|q| right(q)).count();
         let accepted: Vec<&QueryResult> =
@@ -599,7 +603,9 @@ fn score(sample: &QuerySample, outcome: Outcome) -> QueryResult {
         &gt_points,
     );
     let candidate_error = candidate_error.is_finite().then_some(candidate_error);
-    let candidate_rotation = outcome.candidate.map(|c| c.rotation_error_deg(&sample.pose));
+    let candidate_rotation = outcome
+        .candidate
+        .map(|c| c.rotation_error_deg(&sample.pose));
     QueryResult {
         image_id: sample.image_id,
         keypoints: sample.keypoints.len(),
@@ -988,13 +994,17 @@ fn print_report(report: &Report) {
     );
 }
 
-/// Reads an acceptance rule from a JSON file (`tools/fit_acceptance.py`'s output; fields
+/// Reads an acceptance rule from a JSON file (`gomatch-sim fit-acceptance`'s output; fields
 /// other than the rule's are ignored).
 pub fn read_rule(path: &Path) -> anyhow::Result<AcceptanceRule> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    serde_json::from_str(&text)
-        .with_context(|| format!("{}: not an acceptance rule (bias, weights, min_confidence)", path.display()))
+    serde_json::from_str(&text).with_context(|| {
+        format!(
+            "{}: not an acceptance rule (bias, weights, min_confidence)",
+            path.display()
+        )
+    })
 }
 
 /// Runs `gomatch-sim eval`.

@@ -253,7 +253,11 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     println!("rule: {rule:?}");
     for path in &args.check {
         let report = read_report(path)?;
-        println!("check {}: {}", report.scene, Scores::of(&rule, &examples(&report)).describe());
+        println!(
+            "check {}: {}",
+            report.scene,
+            Scores::of(&rule, &examples(&report)).describe()
+        );
     }
     let output = FitOutput {
         bias: rule.bias,

@@ -1,6 +1,6 @@
 //! `gomatch-sim fit-acceptance`: the logistic fit and threshold on small hand-made example
 //! sets, the command on tiny reports, and the core's built-in rule equal to the committed
-//! fit (`models/acceptance.json`).
+//! fit (`models/acceptance/rule.json`).
 
 use std::path::Path;
 
@@ -112,7 +112,11 @@ fn the_command_writes_a_rule_that_eval_reads() {
     let all = examples();
     let dir = std::env::temp_dir().join(format!("gomatch-fit-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let (train, check, out) = (dir.join("a.json"), dir.join("b.json"), dir.join("rule.json"));
+    let (train, check, out) = (
+        dir.join("a.json"),
+        dir.join("b.json"),
+        dir.join("rule.json"),
+    );
     for (path, part) in [(&train, &all[..10]), (&check, &all[30..36])] {
         std::fs::write(path, serde_json::to_string(&report_with(part)).unwrap()).unwrap();
     }
@@ -134,7 +138,7 @@ fn the_command_writes_a_rule_that_eval_reads() {
 
 #[test]
 fn the_built_in_rule_is_the_committed_fit() {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/acceptance.json");
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/acceptance/rule.json");
     let committed = read_rule(&path).unwrap();
     assert_eq!(AcceptanceRule::FITTED, committed);
     assert_eq!(committed.weights.len(), FEATURES);

@@ -7,11 +7,11 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
+use gomatch::acceptance::AcceptanceRule;
 use gomatch::localizer::view_point_bearings;
 use gomatch::map::Map;
 use gomatch::LocalizerConfig;
 use gomatch::Model;
-use gomatch::acceptance::AcceptanceRule;
 use gomatch_sim::eval::{
     curve_label, evaluate, ground_truth_pairs, plot_curves, pose_is_right, protocol_samples,
     report_errors, AcceptanceSummary, EvalOptions, Matching, QueryResult, Report,
@@ -349,7 +349,10 @@ fn acceptance_counts_are_consistent_with_the_queries() {
     let refused = evaluate(&scene, matching, &strict, false).unwrap();
     let r = refused.acceptance.unwrap();
     assert_eq!((r.accepted, r.accepted_wrong, r.precision), (0, 0, None));
-    assert_eq!((r.candidates, r.candidates_right), (a.candidates, a.candidates_right));
+    assert_eq!(
+        (r.candidates, r.candidates_right),
+        (a.candidates, a.candidates_right)
+    );
     assert_eq!(refused.failures, refused.queries);
     assert_eq!(refused.auc_10px, 0.0);
     for (q, before) in refused.per_query.iter().zip(&report.per_query) {
