@@ -20,6 +20,7 @@
 #[cfg(test)]
 extern crate std;
 
+pub mod acceptance;
 pub mod attention;
 pub mod camera;
 pub mod classifier;

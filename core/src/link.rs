@@ -204,6 +204,9 @@ pub struct LocalizeReply {
     pub ransac_iterations: u32,
     /// Stage timings, when the device has a clock.
     pub timings: Option<StageTimings>,
+    /// The acceptance rule's confidence in the best pose, when RANSAC found one (also
+    /// when it was refused: [`Failure::LowConfidence`]).
+    pub confidence: Option<f32>,
 }
 
 impl From<&Localization> for LocalizeReply {
@@ -216,6 +219,7 @@ impl From<&Localization> for LocalizeReply {
             views_skipped: narrow(l.views_skipped),
             ransac_iterations: l.ransac_iterations,
             timings: l.timings,
+            confidence: l.confidence,
         }
     }
 }
@@ -1014,6 +1018,7 @@ mod tests {
             views_skipped: u32::MAX,
             ransac_iterations: u32::MAX,
             timings: Some(timings),
+            confidence: Some(f32::MAX),
         };
         let failure = Failure::TooFewInliers {
             needed: usize::MAX,

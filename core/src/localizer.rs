@@ -22,6 +22,7 @@ use core::fmt;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
+use crate::acceptance::{self, AcceptanceRule, Evidence, PoseSupport};
 use crate::camera::Camera;
 use crate::error::{Error, Input, Result};
 use crate::map::Map;
@@ -136,6 +137,9 @@ pub struct LocalizerConfig {
     /// Fewest inliers of an accepted pose (at least [`MIN_CORRESPONDENCES`]: a P3P sample
     /// always has 3, so a pose must be confirmed by at least one more correspondence).
     pub min_inliers: usize,
+    /// Decides, from the pose's [`Evidence`], whether a pose with `min_inliers` inliers is
+    /// trusted ([`Failure::LowConfidence`] when not).
+    pub acceptance: AcceptanceRule,
 }
 
 impl Default for LocalizerConfig {
@@ -145,12 +149,14 @@ impl Default for LocalizerConfig {
 }
 
 impl LocalizerConfig {
-    /// [`RansacConfig::new`], `min_matches` and `min_inliers` = [`MIN_CORRESPONDENCES`].
+    /// [`RansacConfig::new`], `min_matches` and `min_inliers` = [`MIN_CORRESPONDENCES`],
+    /// [`AcceptanceRule::FITTED`].
     pub const fn new() -> Self {
         Self {
             ransac: RansacConfig::new(),
             min_matches: MIN_CORRESPONDENCES,
             min_inliers: MIN_CORRESPONDENCES,
+            acceptance: AcceptanceRule::FITTED,
         }
     }
 }
@@ -162,7 +168,7 @@ pub trait Clock {
 }
 
 /// Why a valid query could not be localized.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub enum Failure {
     /// Fewer query keypoints than the matcher needs.
     TooFewKeypoints {
@@ -194,6 +200,16 @@ pub enum Failure {
     DegenerateMatches,
     /// RANSAC found no pose hypothesis.
     NoPoseFound,
+    /// The best pose is not trusted: its confidence is below the acceptance rule's
+    /// threshold ([`LocalizerConfig::acceptance`]).
+    LowConfidence {
+        /// The pose's confidence.
+        confidence: f32,
+        /// The threshold.
+        needed: f32,
+        /// Inliers of the pose.
+        inliers: usize,
+    },
 }
 
 impl fmt::Display for Failure {
@@ -213,6 +229,14 @@ impl fmt::Display for Failure {
             }
             Failure::DegenerateMatches => write!(f, "degenerate matches (collinear points)"),
             Failure::NoPoseFound => write!(f, "RANSAC found no pose"),
+            Failure::LowConfidence {
+                confidence,
+                needed,
+                inliers,
+            } => write!(
+                f,
+                "low confidence: {confidence:.3} < {needed:.3} ({inliers} inliers)"
+            ),
         }
     }
 }
@@ -263,6 +287,13 @@ pub struct Localization {
     pub ransac_iterations: u32,
     /// Stage timings, when a clock was given.
     pub timings: Option<StageTimings>,
+    /// Evidence about the best pose, when RANSAC found one with `min_inliers` inliers.
+    pub evidence: Option<Evidence>,
+    /// The acceptance rule's confidence in that pose.
+    pub confidence: Option<f32>,
+    /// That pose, accepted or not: for evaluating the acceptance rule only. A refused
+    /// pose ([`Failure::LowConfidence`]) is not a localization.
+    pub candidate: Option<Pose>,
 }
 
 impl Localization {
@@ -280,6 +311,9 @@ impl Localization {
             views_skipped: 0,
             ransac_iterations: 0,
             timings: None,
+            evidence: None,
+            confidence: None,
+            candidate: None,
         }
     }
 }
@@ -293,7 +327,9 @@ pub struct Correspondence {
     pub point: u32,
     /// Best classifier probability of the pair across views.
     pub probability: f32,
-    /// Inlier of the final pose.
+    /// Position, in the selection, of the view that gave that probability.
+    pub view: u8,
+    /// Inlier of the final (accepted) pose.
     pub inlier: bool,
 }
 
@@ -302,6 +338,7 @@ impl Correspondence {
         keypoint: 0,
         point: 0,
         probability: 0.0,
+        view: 0,
         inlier: false,
     };
 }
@@ -422,8 +459,8 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         self.clear_matches(n);
         let mut counts = MatchCounts::default();
         let (mut used, mut skipped) = (0, 0);
-        for &view in &selected {
-            match self.match_view(model, map, view as usize, &mut counts)? {
+        for (slot, &view) in selected.iter().enumerate() {
+            match self.match_view(model, map, (view as usize, slot as u8), &mut counts)? {
                 true => used += 1,
                 false => skipped += 1,
             }
@@ -438,11 +475,10 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             counts,
             views_used: used,
             views_skipped: skipped,
-            ransac_iterations: 0,
-            timings: None,
+            ..Localization::failed(Failure::NoViews { skipped })
         };
         if used > 0 {
-            localization.outcome = self.solve(config, &mut localization)?;
+            localization.outcome = self.solve(config, query, &mut localization)?;
         }
         let done = now(clock);
         if clock.is_some() {
@@ -493,13 +529,14 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         }
     }
 
-    /// Matches the encoded query against one view and keeps, per keypoint, its best
-    /// accepted match. `false` when the view has too few points in front of it.
+    /// Matches the encoded query against one view (map index, position in the selection)
+    /// and keeps, per keypoint, its best accepted match. `false` when the view has too few
+    /// points in front of it.
     fn match_view(
         &mut self,
         model: &Model<'_>,
         map: &Map<'_>,
-        view: usize,
+        (view, slot): (usize, u8),
         counts: &mut MatchCounts,
     ) -> Result<bool> {
         let pose = map.view(view)?.pose;
@@ -543,7 +580,7 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
                 continue;
             };
             if m.probability > best.probability {
-                (best.point, best.probability) = (point, m.probability);
+                (best.point, best.probability, best.view) = (point, m.probability, slot);
             }
         }
         counts.classified += accepted;
@@ -595,11 +632,12 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         Ok(())
     }
 
-    /// RANSAC-PnP + LM on the merged correspondences; marks the inliers of an accepted
-    /// pose.
+    /// RANSAC-PnP + LM on the merged correspondences, then the acceptance rule on the
+    /// pose's evidence; marks the inliers of an accepted pose.
     fn solve(
         &mut self,
         config: &LocalizerConfig,
+        query: &Query<'_>,
         localization: &mut Localization,
     ) -> Result<core::result::Result<Pose, Failure>> {
         let len = self.merged_len;
@@ -619,6 +657,26 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
                     return Ok(Err(Failure::TooFewInliers {
                         needed: config.min_inliers,
                         found: estimate.inlier_count,
+                    }));
+                }
+                let support = PoseSupport {
+                    pose: &estimate.pose,
+                    matches: self.merged.get(..len).unwrap_or(&[]),
+                    inliers: estimate.inlier_mask,
+                    bearings,
+                    points,
+                    threshold: config.ransac.threshold,
+                };
+                let evidence = acceptance::gather(&support, query.keypoints, &query.camera);
+                let confidence = config.acceptance.confidence(&evidence);
+                localization.evidence = Some(evidence);
+                localization.confidence = Some(confidence);
+                localization.candidate = Some(estimate.pose);
+                if !config.acceptance.accepts(confidence) {
+                    return Ok(Err(Failure::LowConfidence {
+                        confidence,
+                        needed: config.acceptance.min_confidence,
+                        inliers: estimate.inlier_count,
                     }));
                 }
                 for (c, &inlier) in self.merged.iter_mut().zip(estimate.inlier_mask) {
@@ -670,6 +728,7 @@ fn check_config(config: &LocalizerConfig) -> Result<()> {
             parameter: "min_inliers",
         });
     }
+    config.acceptance.check()?;
     let ransac = &config.ransac;
     if ransac.max_iterations == 0 {
         return Err(Error::InvalidConfig {
@@ -1079,7 +1138,7 @@ mod tests {
         assert!(merged.iter().any(|c| c.keypoint == 7 && c.point == 9));
         let mut localization = Localization::failed(Failure::NoPoseFound);
         let pose = l
-            .solve(&LocalizerConfig::new(), &mut localization)
+            .solve(&LocalizerConfig::new(), &query, &mut localization)
             .expect("valid")
             .expect("localized");
         assert!(pose.rotation_error_deg(&truth) < 1e-3);
@@ -1091,6 +1150,94 @@ mod tests {
             .correspondences()
             .iter()
             .any(|c| c.keypoint == 7 && !c.inlier));
+    }
+
+    /// The acceptance rule decides on the pose RANSAC found: below its threshold the pose
+    /// is refused with its confidence, kept as the candidate, and no inlier is marked.
+    #[test]
+    fn a_pose_below_the_confidence_threshold_is_refused() {
+        let f = fixture();
+        let map = Map::from_bytes(&f.blob).expect("valid map");
+        let truth = pose(0.1);
+        let kp = keypoints(&f, &truth);
+        let mut l = LOCALIZER.lock().expect("lock");
+        let query = Query {
+            keypoints: &kp[..CAP],
+            camera: camera(),
+        };
+        let mut solve = |acceptance: AcceptanceRule| {
+            l.set_query(&query).expect("valid");
+            l.clear_matches(CAP);
+            for k in 0..CAP {
+                (l.merged[k].point, l.merged[k].probability) = (k as u32, 0.9);
+                l.merged[k].view = (k % 3) as u8;
+            }
+            l.merge(&map, &query, CAP).expect("merges");
+            let config = LocalizerConfig {
+                acceptance,
+                ..LocalizerConfig::new()
+            };
+            let mut localization = Localization::failed(Failure::NoPoseFound);
+            let outcome = l.solve(&config, &query, &mut localization).expect("valid");
+            (outcome, localization, l.inliers().count())
+        };
+        // Confidence sigmoid(6 - 1 * views) = sigmoid(3) = 0.953 with three views.
+        let rule = |min_confidence| AcceptanceRule {
+            bias: 6.0,
+            weights: [0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0],
+            min_confidence,
+        };
+        let (accepted, with_evidence, marked) = solve(rule(0.95));
+        let pose = accepted.expect("accepted");
+        assert!(pose.rotation_error_deg(&truth) < 1e-3);
+        assert_eq!(marked, CAP);
+        let evidence = with_evidence.evidence.expect("gathered");
+        assert_eq!((evidence.inliers, evidence.views), (CAP as u32, 3));
+        let confidence = with_evidence.confidence.expect("scored");
+        assert!((confidence - 0.952_574).abs() < 1e-5, "{confidence}");
+
+        let (refused, without_pose, marked) = solve(rule(0.96));
+        assert_eq!(
+            refused,
+            Err(Failure::LowConfidence {
+                confidence,
+                needed: 0.96,
+                inliers: CAP
+            })
+        );
+        assert_eq!(marked, 0);
+        assert_eq!(without_pose.candidate, Some(pose));
+        assert_eq!(without_pose.evidence, Some(evidence));
+        let text = std::format!("{}", refused.unwrap_err());
+        assert!(text.starts_with("low confidence: 0.953 < 0.960"), "{text}");
+    }
+
+    #[test]
+    fn an_invalid_acceptance_rule_is_a_config_error() {
+        let f = fixture();
+        let map = Map::from_bytes(&f.blob).expect("valid map");
+        let kp = keypoints(&f, &pose(0.1));
+        let config = LocalizerConfig {
+            acceptance: AcceptanceRule {
+                min_confidence: 2.0,
+                ..AcceptanceRule::FITTED
+            },
+            ..LocalizerConfig::new()
+        };
+        with_model(|model| {
+            let mut l = LOCALIZER.lock().expect("lock");
+            let query = Query {
+                keypoints: &kp[..20],
+                camera: camera(),
+            };
+            let views = ViewSelection::ImageIds(&[10]);
+            assert_eq!(
+                l.localize(model, &map, &query, views, &config, None),
+                Err(Error::InvalidConfig {
+                    parameter: "acceptance"
+                })
+            );
+        });
     }
 
     #[test]

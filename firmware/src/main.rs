@@ -19,7 +19,7 @@ mod mem;
 use core::ptr::addr_of_mut;
 
 use gomatch::link::{self, Device, LinkError, NoPin, Response, ResponseBody, Served, Service};
-use gomatch::{Localizer, Map, Model, Pose};
+use gomatch::{Failure, Localizer, Map, Model, Pose};
 use half::f16;
 
 /// Keypoints per query and points per view.
@@ -55,6 +55,9 @@ pub mod exit_code {
     pub const POSE_WRONG: i32 = 2;
     /// Ran, and the localizer reported a failure (too few matches or inliers, no pose).
     pub const NOT_LOCALIZED: i32 = 3;
+    /// Ran and found a pose, but the acceptance rule refused it (low confidence): the
+    /// device says "not localized" rather than give a pose it does not trust.
+    pub const REFUSED: i32 = 4;
     /// The model blob does not validate.
     pub const MODEL_INVALID: i32 = 10;
     /// The map blob does not validate.
@@ -164,6 +167,7 @@ fn run(
                 }
             }
             Ok(Err(_)) => exit_code::POSE_WRONG,
+            Err(Failure::LowConfidence { .. }) => exit_code::REFUSED,
             Err(_) => exit_code::NOT_LOCALIZED,
         },
         ResponseBody::Error(LinkError::Rejected(_)) => exit_code::QUERY_REJECTED,

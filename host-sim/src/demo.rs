@@ -73,7 +73,9 @@ fn print_query(q: &QueryResult) {
     );
     match (&q.failure, q.rotation_deg, q.translation) {
         (None, Some(r), Some(t)) => println!(
-            "  errors: rotation {r:.4} deg, translation {t:.5}, reprojection {}",
+            "  localized{}; errors: rotation {r:.4} deg, translation {t:.5}, reprojection {}",
+            q.confidence
+                .map_or(String::new(), |c| format!(" with confidence {c:.3}")),
             q.reprojection_px
                 .map_or("infinite".to_string(), |e| format!("{e:.3} px"))
         ),
@@ -179,8 +181,13 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     for q in &report.per_query {
         print_query(q);
     }
+    let refused = report
+        .per_query
+        .iter()
+        .filter(|q| q.failure.is_some() && q.confidence.is_some())
+        .count();
     println!(
-        "{} of {} queries localized; reprojection AUC @1/5/10 px {:.1} / {:.1} / {:.1} %",
+        "{} of {} queries localized ({refused} refused for low confidence); reprojection AUC @1/5/10 px {:.1} / {:.1} / {:.1} %",
         report.queries - report.failures,
         report.queries,
         report.auc_1px,

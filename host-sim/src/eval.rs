@@ -8,7 +8,8 @@
 //! projected with the true and the estimated pose, [`query_reprojection_error`]), the
 //! rotation and translation error quartiles of the localized queries, failures, mean
 //! match counts per stage, how many merged matches and inliers are ground-truth pairs
-//! ([`Correct`]), and stage timings.
+//! ([`Correct`]), stage timings, and how well the acceptance rule separates right poses
+//! from wrong ones ([`AcceptanceSummary`], with each query's [`Evidence`] and features).
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -17,6 +18,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context};
 use clap::{Parser, ValueEnum};
+use gomatch::acceptance::{AcceptanceRule, Evidence, FEATURES};
 use gomatch::localizer::{Clock, Correspondence, MatchCounts, StageTimings};
 use gomatch::map::Map;
 use gomatch::sinkhorn::PlanScalar;
@@ -42,6 +44,10 @@ pub const CAPACITY: usize = 1024;
 const WORKER_STACK: usize = 64 << 20;
 /// AUC thresholds in pixels.
 pub const AUC_THRESHOLDS: [f64; 3] = [1.0, 5.0, 10.0];
+/// A pose is wrong when its reprojection error is above this (pixels)...
+pub const WRONG_REPROJECTION_PX: f64 = 10.0;
+/// ... or its rotation error above this (degrees).
+pub const WRONG_ROTATION_DEG: f64 = 5.0;
 
 /// Evaluate localization on a structure-from-motion model with the paper's protocol.
 #[derive(Debug, Clone, Parser)]
@@ -86,6 +92,10 @@ pub struct Args {
     /// Earlier JSON reports whose curves the plot shows beside this one (repeatable).
     #[arg(long, requires = "plot")]
     pub plot_with: Vec<PathBuf>,
+    /// Acceptance rule to use instead of the built-in one: a JSON file as written by
+    /// `gomatch-sim fit-acceptance` (`bias`, `weights`, `min_confidence`).
+    #[arg(long)]
+    pub acceptance: Option<PathBuf>,
 }
 
 /// Storage type of the Sinkhorn cost matrix.
@@ -219,6 +229,83 @@ pub struct QueryResult {
     pub translation: Option<f64>,
     /// Stage timings.
     pub timings_ms: TimingsMs,
+    /// Evidence about the best pose, when RANSAC found one with `min_inliers` inliers
+    /// (absent in older reports and for the oracle).
+    #[serde(default)]
+    pub evidence: Option<Evidence>,
+    /// The acceptance rule's inputs computed from `evidence` ([`Evidence::features`]).
+    #[serde(default)]
+    pub features: Option<[f32; FEATURES]>,
+    /// The acceptance rule's confidence in that pose.
+    #[serde(default)]
+    pub confidence: Option<f32>,
+    /// Reprojection error of that pose, accepted or not (`null`: no pose, or infinite).
+    #[serde(default)]
+    pub candidate_reprojection_px: Option<f64>,
+    /// Rotation error of that pose, degrees.
+    #[serde(default)]
+    pub candidate_rotation_deg: Option<f64>,
+    /// Whether that pose is right ([`pose_is_right`]); `null` without a pose.
+    #[serde(default)]
+    pub candidate_right: Option<bool>,
+}
+
+/// A pose is right when its reprojection error is at most [`WRONG_REPROJECTION_PX`] and
+/// its rotation error at most [`WRONG_ROTATION_DEG`].
+pub fn pose_is_right(reprojection_px: Option<f64>, rotation_deg: f64) -> bool {
+    reprojection_px.is_some_and(|e| e <= WRONG_REPROJECTION_PX)
+        && rotation_deg <= WRONG_ROTATION_DEG
+}
+
+/// How the acceptance rule did on a scene. A *candidate* is a query for which RANSAC
+/// found a pose with `min_inliers` (4) inliers: what the localizer accepted before the
+/// rule existed.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct AcceptanceSummary {
+    /// The rule used.
+    pub rule: AcceptanceRule,
+    /// Queries with a candidate pose.
+    pub candidates: usize,
+    /// Candidates that are right ([`pose_is_right`]).
+    pub candidates_right: usize,
+    /// Queries whose pose was accepted (reported as localized).
+    pub accepted: usize,
+    /// Accepted poses that are wrong.
+    pub accepted_wrong: usize,
+    /// `1 - accepted_wrong / accepted` (`null` when none was accepted).
+    pub precision: Option<f64>,
+    /// Right accepted poses / right candidates: the share of the right poses the old
+    /// `min_inliers` rule reported that this rule keeps (`null` without right candidates).
+    pub recall: Option<f64>,
+    /// Right accepted poses / all queries.
+    pub right_of_all: f64,
+}
+
+impl AcceptanceSummary {
+    /// Counts over the queries of a report.
+    pub fn of(rule: AcceptanceRule, per_query: &[QueryResult]) -> Self {
+        let candidates = per_query
+            .iter()
+            .filter(|q| q.candidate_right.is_some())
+            .count();
+        let right = |q: &QueryResult| q.candidate_right == Some(true);
+        let candidates_right = per_query.iter().filter(|q| right(q)).count();
+        let accepted: Vec<&QueryResult> =
+            per_query.iter().filter(|q| q.failure.is_none()).collect();
+        let accepted_right = accepted.iter().filter(|q| right(q)).count();
+        let accepted_wrong = accepted.len() - accepted_right;
+        let ratio = |a: usize, b: usize| (b > 0).then(|| a as f64 / b as f64);
+        Self {
+            rule,
+            candidates,
+            candidates_right,
+            accepted: accepted.len(),
+            accepted_wrong,
+            precision: ratio(accepted_right, accepted.len()),
+            recall: ratio(accepted_right, candidates_right),
+            right_of_all: ratio(accepted_right, per_query.len()).unwrap_or(0.0),
+        }
+    }
 }
 
 /// The RANSAC cap of reports written before it was recorded (the localizer's default then).
@@ -280,6 +367,9 @@ pub struct Report {
     pub map_bytes: usize,
     /// Bytes of the model blob (0 for the oracle).
     pub model_bytes: usize,
+    /// The acceptance rule's precision and recall (absent in older reports).
+    #[serde(default)]
+    pub acceptance: Option<AcceptanceSummary>,
     /// Every query.
     pub per_query: Vec<QueryResult>,
 }
@@ -332,6 +422,9 @@ pub fn oracle_correspondences(sample: &QuerySample) -> (Vec<[f64; 2]>, Vec<[f64;
 /// What one query produced, before scoring.
 struct Outcome {
     estimate: Option<Pose>,
+    candidate: Option<Pose>,
+    evidence: Option<Evidence>,
+    confidence: Option<f32>,
     failure: Option<String>,
     counts: MatchCounts,
     correct: Correct,
@@ -365,6 +458,9 @@ fn oracle_outcome(
     };
     Outcome {
         estimate,
+        candidate: estimate,
+        evidence: None,
+        confidence: None,
         failure,
         counts,
         correct: Correct {
@@ -425,6 +521,9 @@ fn localizer_outcome<S: PlanScalar>(
     };
     Ok(Outcome {
         estimate: result.outcome.ok(),
+        candidate: result.candidate,
+        evidence: result.evidence,
+        confidence: result.confidence,
         failure: result.outcome.err().map(|f| f.to_string()),
         counts: result.counts,
         correct,
@@ -498,6 +597,16 @@ fn score(sample: &QuerySample, outcome: Outcome) -> QueryResult {
         &gt_points,
     );
     let keypoint_error = keypoint_reprojection_error(sample, outcome.estimate.as_ref());
+    let candidate_error = query_reprojection_error(
+        &sample.camera,
+        &sample.pose,
+        outcome.candidate.as_ref(),
+        &gt_points,
+    );
+    let candidate_error = candidate_error.is_finite().then_some(candidate_error);
+    let candidate_rotation = outcome
+        .candidate
+        .map(|c| c.rotation_error_deg(&sample.pose));
     QueryResult {
         image_id: sample.image_id,
         keypoints: sample.keypoints.len(),
@@ -513,6 +622,12 @@ fn score(sample: &QuerySample, outcome: Outcome) -> QueryResult {
         rotation_deg: outcome.estimate.map(|e| e.rotation_error_deg(&sample.pose)),
         translation: outcome.estimate.map(|e| e.translation_error(&sample.pose)),
         timings_ms: outcome.timings.into(),
+        evidence: outcome.evidence,
+        features: outcome.evidence.map(|e| e.features()),
+        confidence: outcome.confidence,
+        candidate_reprojection_px: candidate_error,
+        candidate_rotation_deg: candidate_rotation,
+        candidate_right: candidate_rotation.map(|r| pose_is_right(candidate_error, r)),
     }
 }
 
@@ -714,6 +829,10 @@ pub fn evaluate(
         localizer_bytes,
         map_bytes: blob.len(),
         model_bytes,
+        acceptance: Some(AcceptanceSummary::of(
+            options.localizer.acceptance,
+            &per_query,
+        )),
         per_query,
     })
 }
@@ -863,11 +982,36 @@ fn print_report(report: &Report) {
             t.merged, t.inliers
         );
     }
+    if let Some(a) = &report.acceptance {
+        let percent = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{:.1} %", 100.0 * v));
+        println!(
+            "  acceptance: {} accepted, {} of them wrong (precision {}); {} of {} right poses with >= 4 inliers kept (recall {})",
+            a.accepted,
+            a.accepted_wrong,
+            percent(a.precision),
+            a.accepted - a.accepted_wrong,
+            a.candidates_right,
+            percent(a.recall)
+        );
+    }
     let t = &report.mean_timings_ms;
     println!(
         "  mean time per query (ms, {} thread(s)): encode {:.1}, match {:.1}, merge {:.2}, pose {:.2}, total {:.1}",
         report.threads, t.encode, t.matching, t.merge, t.pose, t.total
     );
+}
+
+/// Reads an acceptance rule from a JSON file (`gomatch-sim fit-acceptance`'s output; fields
+/// other than the rule's are ignored).
+pub fn read_rule(path: &Path) -> anyhow::Result<AcceptanceRule> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    serde_json::from_str(&text).with_context(|| {
+        format!(
+            "{}: not an acceptance rule (bias, weights, min_confidence)",
+            path.display()
+        )
+    })
 }
 
 /// Runs `gomatch-sim eval`.
@@ -889,6 +1033,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 max_iterations: args.ransac_iterations,
                 seed: args.seed,
                 ..RansacConfig::new()
+            },
+            acceptance: match &args.acceptance {
+                Some(path) => read_rule(path)?,
+                None => AcceptanceRule::FITTED,
             },
             ..LocalizerConfig::new()
         },

@@ -25,6 +25,7 @@ pub mod conform;
 
 pub mod demo;
 pub mod eval;
+pub mod fit;
 
 pub mod device;
 pub mod firmware_data;

@@ -27,6 +27,8 @@ enum Command {
     Demo(gomatch_sim::demo::Args),
     /// Evaluate localization on a scene with the paper's protocol (AUC, pose errors).
     Eval(gomatch_sim::eval::Args),
+    /// Fit the localizer's acceptance rule on `eval` reports of training scenes.
+    FitAcceptance(gomatch_sim::fit::Args),
     /// Drive a simulated device over its link (COBS/postcard) with synthetic queries.
     Device(gomatch_sim::device::Args),
     /// Write the firmware image's embedded map, query and ground truth.
@@ -44,6 +46,7 @@ fn main() -> anyhow::Result<()> {
         Command::Conform(args) => gomatch_sim::conform::run(&args)?,
         Command::Demo(args) => gomatch_sim::demo::run(&args)?,
         Command::Eval(args) => gomatch_sim::eval::run(&args)?,
+        Command::FitAcceptance(args) => gomatch_sim::fit::run(&args)?,
         Command::Device(args) => gomatch_sim::device::run(&args)?,
         Command::FirmwareData(args) => gomatch_sim::firmware_data::run(&args)?,
         Command::Localize(args) => {

@@ -7,13 +7,15 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
+use gomatch::acceptance::AcceptanceRule;
 use gomatch::localizer::view_point_bearings;
 use gomatch::map::Map;
 use gomatch::LocalizerConfig;
 use gomatch::Model;
 use gomatch_sim::eval::{
-    curve_label, evaluate, ground_truth_pairs, plot_curves, protocol_samples, report_errors,
-    EvalOptions, Matching, QueryResult, Report, SinkhornPrecision, TimingsMs, CAPACITY,
+    curve_label, evaluate, ground_truth_pairs, plot_curves, pose_is_right, protocol_samples,
+    report_errors, AcceptanceSummary, EvalOptions, Matching, QueryResult, Report,
+    SinkhornPrecision, TimingsMs, CAPACITY,
 };
 use gomatch_sim::map::{build_map, map_point_index};
 use gomatch_sim::protocol::ProtocolParams;
@@ -277,5 +279,90 @@ fn correct_matches_are_counted_among_the_merged_matches_and_inliers() {
             (correct.merged, correct.inliers),
             (query.counts.merged, query.counts.inliers)
         );
+    }
+}
+
+/// The acceptance figures agree with the per-query records: accepted poses are the
+/// reported ones, a refused candidate is a failure, the evidence's features are stored,
+/// and a rule that refuses everything leaves the candidates as they were.
+#[test]
+fn acceptance_counts_are_consistent_with_the_queries() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/gomatch-int8.bin");
+    let Ok(blob) = std::fs::read(&path) else {
+        println!("SKIPPED: no shipped model at {}", path.display());
+        return;
+    };
+    let model = Model::from_bytes(&blob).unwrap();
+    let matching = Matching::Model {
+        model: &model,
+        blob_bytes: blob.len(),
+        precision: SinkhornPrecision::F16,
+    };
+    let scene = synthetic_scene(1, 1);
+    let report = evaluate(&scene, matching, &options(10, 4, 2), false).unwrap();
+    print(&report);
+    let a = report.acceptance.expect("recorded");
+    assert_eq!(a.rule, AcceptanceRule::FITTED);
+    assert!(a.accepted_wrong <= a.accepted && a.accepted <= a.candidates);
+    assert!(a.candidates_right <= a.candidates && a.candidates <= report.queries);
+    assert_eq!(a.accepted, report.queries - report.failures);
+    assert_eq!(a, AcceptanceSummary::of(a.rule, &report.per_query));
+    let right_accepted = a.accepted - a.accepted_wrong;
+    assert_eq!(
+        a.precision,
+        (a.accepted > 0).then(|| right_accepted as f64 / a.accepted as f64)
+    );
+    assert!(a.candidates > 0, "the model localizes synthetic queries");
+    for q in &report.per_query {
+        let Some(evidence) = q.evidence else {
+            assert!(q.candidate_right.is_none() && q.failure.is_some(), "{q:?}");
+            continue;
+        };
+        assert_eq!(q.features, Some(evidence.features()));
+        assert_eq!(evidence.inliers as f64, q.counts.inliers);
+        assert!(evidence.inliers <= evidence.loose && evidence.loose <= evidence.merged);
+        let confidence = q.confidence.expect("scored with the evidence");
+        assert_eq!(confidence, a.rule.confidence(&evidence));
+        let rotation = q.candidate_rotation_deg.expect("a candidate");
+        assert_eq!(
+            q.candidate_right,
+            Some(pose_is_right(q.candidate_reprojection_px, rotation))
+        );
+        if q.failure.is_none() {
+            assert!(a.rule.accepts(confidence));
+            assert_eq!(q.rotation_deg, Some(rotation));
+            assert_eq!(q.reprojection_px, q.candidate_reprojection_px);
+        }
+    }
+
+    let refuse_all = AcceptanceRule {
+        bias: -100.0,
+        weights: [0.0; gomatch::acceptance::FEATURES],
+        min_confidence: 0.5,
+    };
+    let strict = EvalOptions {
+        localizer: LocalizerConfig {
+            acceptance: refuse_all,
+            ..LocalizerConfig::new()
+        },
+        ..options(10, 4, 2)
+    };
+    let refused = evaluate(&scene, matching, &strict, false).unwrap();
+    let r = refused.acceptance.unwrap();
+    assert_eq!((r.accepted, r.accepted_wrong, r.precision), (0, 0, None));
+    assert_eq!(
+        (r.candidates, r.candidates_right),
+        (a.candidates, a.candidates_right)
+    );
+    assert_eq!(refused.failures, refused.queries);
+    assert_eq!(refused.auc_10px, 0.0);
+    for (q, before) in refused.per_query.iter().zip(&report.per_query) {
+        assert_eq!(q.evidence, before.evidence);
+        assert_eq!(q.candidate_rotation_deg, before.candidate_rotation_deg);
+        assert!(q.reprojection_px.is_none() && q.rotation_deg.is_none());
+        if q.evidence.is_some() {
+            let failure = q.failure.as_deref().unwrap();
+            assert!(failure.starts_with("low confidence"), "{failure}");
+        }
     }
 }

@@ -1,0 +1,327 @@
+//! Whether a pose is trusted: RANSAC-PnP always returns its best hypothesis, and with few
+//! true matches that hypothesis is often wrong while still having a handful of inliers.
+//! The [`AcceptanceRule`] scores the [`Evidence`] the pipeline has about the pose with a
+//! logistic model, `confidence = 1 / (1 + exp(-(bias + weights . features)))`, an estimate
+//! of the probability that the pose is right (reprojection error at most 10 px and
+//! rotation error at most 5 deg), and accepts the pose when `confidence >= min_confidence`.
+//!
+//! The features ([`Evidence::features`]):
+//!
+//! | # | feature | why |
+//! |---|---|---|
+//! | 0 | `ln(inliers)` | more independent support |
+//! | 1 | `ln(inliers / merged matches)` | a wrong pose's inliers are chance agreements, a number that grows with the matches |
+//! | 2 | share of the 8 x 8 image cells holding an inlier keypoint | a wrong pose often rests on a clump of keypoints |
+//! | 3 | area of the inliers' bounding box / image area | the same, at the image scale |
+//! | 4 | mean classifier probability of the inliers | the network's own belief |
+//! | 5 | views whose matches are among the inliers | agreement between database views |
+//! | 6 | share of the non-inliers within [`LOOSE_FACTOR`] x the threshold | near-misses of a right pose are noisy true matches |
+//!
+//! The weights are fitted on training scenes by `gomatch-sim fit-acceptance` from
+//! `gomatch-sim eval` reports (see the README, "Acceptance rule").
+
+use serde::{Deserialize, Serialize};
+
+use crate::camera::Camera;
+use crate::error::{Error, Result};
+use crate::localizer::Correspondence;
+use crate::pose::Pose;
+
+/// Number of features of [`Evidence::features`].
+pub const FEATURES: usize = 7;
+/// Cells per image side of the coverage grid.
+pub const GRID: u32 = 8;
+/// The looser threshold of the support feature, as a multiple of RANSAC's threshold.
+pub const LOOSE_FACTOR: f64 = 4.0;
+
+/// What the pipeline knows about a pose, gathered after RANSAC-PnP.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct Evidence {
+    /// Merged matches given to the pose solver.
+    pub merged: u32,
+    /// Inliers of the pose.
+    pub inliers: u32,
+    /// Merged matches within [`LOOSE_FACTOR`] x the threshold (inliers included).
+    pub loose: u32,
+    /// Cells of the [`GRID`] x [`GRID`] image grid holding at least one inlier keypoint.
+    pub cells: u32,
+    /// Area of the inlier keypoints' bounding box as a fraction of the image area.
+    pub bbox_area: f32,
+    /// Mean classifier probability of the inliers.
+    pub mean_probability: f32,
+    /// Views (of those matched) that gave at least one inlier.
+    pub views: u32,
+}
+
+impl Evidence {
+    /// The rule's inputs, in the order of the module's table.
+    pub fn features(&self) -> [f32; FEATURES] {
+        let inliers = (self.inliers as f32).max(1.0);
+        let outliers = self.merged.saturating_sub(self.inliers).max(1) as f32;
+        let near = self.loose.saturating_sub(self.inliers) as f32;
+        [
+            libm::logf(inliers),
+            libm::logf(inliers / self.merged.max(self.inliers).max(1) as f32),
+            self.cells as f32 / (GRID * GRID) as f32,
+            self.bbox_area,
+            self.mean_probability,
+            self.views as f32,
+            near / outliers,
+        ]
+    }
+}
+
+/// A logistic acceptance rule over [`Evidence::features`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct AcceptanceRule {
+    /// Constant term of the logistic model.
+    pub bias: f32,
+    /// One weight per feature.
+    pub weights: [f32; FEATURES],
+    /// Least confidence of an accepted pose, in `[0, 1]`; 0 accepts every pose with
+    /// `min_inliers` inliers (the rule before this one).
+    pub min_confidence: f32,
+}
+
+impl Default for AcceptanceRule {
+    fn default() -> Self {
+        Self::FITTED
+    }
+}
+
+impl AcceptanceRule {
+    /// The rule fitted on seven training scenes with the shipped model
+    /// (`gomatch-sim fit-acceptance`, `models/acceptance/rule.json`).
+    pub const FITTED: Self = Self {
+        bias: -6.404_428_5,
+        weights: [
+            1.343_300_2,
+            1.961_809_5,
+            13.752_093,
+            6.498_537,
+            10.114_199,
+            0.152_243_94,
+            5.944_038,
+        ],
+        min_confidence: 0.878_130_1,
+    };
+
+    /// Accepts every pose (confidence 0.5, threshold 0): the bare `min_inliers` rule.
+    pub const ACCEPT_ALL: Self = Self {
+        bias: 0.0,
+        weights: [0.0; FEATURES],
+        min_confidence: 0.0,
+    };
+
+    /// The logistic score of the evidence, in `[0, 1]`.
+    pub fn confidence(&self, evidence: &Evidence) -> f32 {
+        let z = self
+            .weights
+            .iter()
+            .zip(evidence.features())
+            .fold(self.bias, |z, (w, x)| z + w * x);
+        1.0 / (1.0 + libm::expf(-z))
+    }
+
+    /// Whether a pose of this confidence is accepted.
+    pub fn accepts(&self, confidence: f32) -> bool {
+        confidence >= self.min_confidence
+    }
+
+    /// Finite weights and a threshold in `[0, 1]`.
+    pub(crate) fn check(&self) -> Result<()> {
+        let finite = self.bias.is_finite() && self.weights.iter().all(|w| w.is_finite());
+        if !finite || !(0.0..=1.0).contains(&self.min_confidence) {
+            return Err(Error::InvalidConfig {
+                parameter: "acceptance",
+            });
+        }
+        Ok(())
+    }
+}
+
+/// The pose and the solver's inputs the evidence is gathered from.
+pub(crate) struct PoseSupport<'a> {
+    /// The pose.
+    pub pose: &'a Pose,
+    /// The merged correspondences (keypoint, probability, view slot).
+    pub matches: &'a [Correspondence],
+    /// Per correspondence: inlier of the pose.
+    pub inliers: &'a [bool],
+    /// Per correspondence: the keypoint's bearing.
+    pub bearings: &'a [[f64; 2]],
+    /// Per correspondence: the world point.
+    pub points: &'a [[f64; 3]],
+    /// RANSAC's inlier threshold on the normalised image plane.
+    pub threshold: f64,
+}
+
+/// Gathers the [`Evidence`] of a pose: inlier keypoints' spread over the query image
+/// (`keypoints` in pixels, `camera` for the image size), their probabilities and views,
+/// and the support at [`LOOSE_FACTOR`] x the threshold.
+pub(crate) fn gather(
+    support: &PoseSupport<'_>,
+    keypoints: &[[f32; 2]],
+    camera: &Camera,
+) -> Evidence {
+    let (width, height) = (camera.width.max(1) as f32, camera.height.max(1) as f32);
+    let loose = LOOSE_FACTOR * support.threshold;
+    let loose2 = loose * loose;
+    let (mut cells, mut views) = (0u64, 0u32);
+    let (mut lo, mut hi) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
+    let (mut evidence, mut probability) = (Evidence::default(), 0.0f32);
+    let rows = support
+        .matches
+        .iter()
+        .zip(support.inliers)
+        .zip(support.bearings.iter().zip(support.points));
+    for (index, ((c, &inlier), (bearing, point))) in rows.enumerate() {
+        evidence.merged += 1;
+        let projected = support
+            .pose
+            .bearing(&nalgebra::Vector3::new(point[0], point[1], point[2]), index);
+        let (dx, dy) = projected.map_or((f64::INFINITY, 0.0), |b| {
+            (b[0] - bearing[0], b[1] - bearing[1])
+        });
+        if dx * dx + dy * dy < loose2 {
+            evidence.loose += 1;
+        }
+        let Some(&[x, y]) = keypoints.get(usize::from(c.keypoint)).filter(|_| inlier) else {
+            continue;
+        };
+        evidence.inliers += 1;
+        probability += c.probability;
+        views |= 1 << (c.view % 32);
+        let cell = |v: f32, size: f32| ((v / size * GRID as f32) as u32).min(GRID - 1);
+        cells |= 1 << (cell(y, height) * GRID + cell(x, width));
+        (lo, hi) = ([lo[0].min(x), lo[1].min(y)], [hi[0].max(x), hi[1].max(y)]);
+    }
+    if evidence.inliers > 0 {
+        let side = |a: usize, size: f32| ((hi[a].min(size) - lo[a].max(0.0)) / size).max(0.0);
+        evidence.bbox_area = side(0, width) * side(1, height);
+        evidence.mean_probability = probability / evidence.inliers as f32;
+    }
+    evidence.cells = cells.count_ones();
+    evidence.views = views.count_ones();
+    evidence
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn evidence(inliers: u32, merged: u32, cells: u32) -> Evidence {
+        Evidence {
+            merged,
+            inliers,
+            loose: inliers + (merged - inliers) / 2,
+            cells,
+            bbox_area: cells as f32 / 64.0,
+            mean_probability: 0.6,
+            views: 3,
+        }
+    }
+
+    #[test]
+    fn features_follow_the_documented_table() {
+        let f = evidence(20, 60, 16).features();
+        assert!((f[0] - libm::logf(20.0)).abs() < 1e-6);
+        assert!((f[1] - libm::logf(1.0 / 3.0)).abs() < 1e-6);
+        assert_eq!(f[2], 0.25);
+        assert_eq!(f[3], 0.25);
+        assert_eq!(f[4], 0.6);
+        assert_eq!(f[5], 3.0);
+        assert_eq!(f[6], 0.5);
+        // No division by zero without matches.
+        assert!(Evidence::default().features().iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn confidence_is_a_logistic_score_and_the_threshold_decides() {
+        let rule = AcceptanceRule {
+            bias: -6.0,
+            weights: [2.0, 0.0, 4.0, 0.0, 0.0, 0.0, 0.0],
+            min_confidence: 0.5,
+        };
+        let weak = rule.confidence(&evidence(5, 40, 2));
+        let strong = rule.confidence(&evidence(60, 80, 30));
+        assert!((0.0..0.5).contains(&weak), "{weak}");
+        assert!((0.5..=1.0).contains(&strong), "{strong}");
+        assert!(!rule.accepts(weak) && rule.accepts(strong));
+        assert_eq!(
+            AcceptanceRule::ACCEPT_ALL.confidence(&evidence(4, 4, 1)),
+            0.5
+        );
+        assert!(AcceptanceRule::ACCEPT_ALL.accepts(0.0));
+        // Bit-identical on repetition.
+        assert_eq!(
+            rule.confidence(&evidence(60, 80, 30)).to_bits(),
+            strong.to_bits()
+        );
+    }
+
+    #[test]
+    fn a_rule_with_non_finite_weights_or_threshold_is_invalid() {
+        let invalid = Err(Error::InvalidConfig {
+            parameter: "acceptance",
+        });
+        let mut rule = AcceptanceRule::FITTED;
+        assert_eq!(rule.check(), Ok(()));
+        rule.weights[3] = f32::NAN;
+        assert_eq!(rule.check(), invalid);
+        for threshold in [-0.1, 1.5, f32::NAN] {
+            let rule = AcceptanceRule {
+                min_confidence: threshold,
+                ..AcceptanceRule::FITTED
+            };
+            assert_eq!(rule.check(), invalid);
+        }
+    }
+
+    #[test]
+    fn evidence_counts_spread_views_and_loose_support() {
+        let camera = Camera::simple_pinhole(800, 600, 500.0, 400.0, 300.0).expect("valid");
+        let pose = Pose::identity();
+        // Four matches: three inliers at three corners (views 0, 0, 2), one outlier whose
+        // bearing is off by 2x the threshold (within the loose radius) and one off by far.
+        let keypoints = [
+            [10.0, 10.0],
+            [790.0, 10.0],
+            [10.0, 590.0],
+            [400.0, 300.0],
+            [5.0, 5.0],
+        ];
+        let matches: [Correspondence; 5] = core::array::from_fn(|i| Correspondence {
+            keypoint: i as u16,
+            point: i as u32,
+            probability: [0.9, 0.6, 0.6, 0.3, 0.3][i],
+            view: [0, 0, 2, 1, 1][i],
+            inlier: false,
+        });
+        let inliers = [true, true, true, false, false];
+        let points: [[f64; 3]; 5] = core::array::from_fn(|i| [0.1 * i as f64, 0.0, 1.0]);
+        let mut bearings: [[f64; 2]; 5] = core::array::from_fn(|i| [0.1 * i as f64, 0.0]);
+        bearings[3][1] += 2e-3;
+        bearings[4][1] += 1.0;
+        let support = PoseSupport {
+            pose: &pose,
+            matches: &matches,
+            inliers: &inliers,
+            bearings: &bearings,
+            points: &points,
+            threshold: 1e-3,
+        };
+        let e = gather(&support, &keypoints, &camera);
+        assert_eq!(
+            (e.merged, e.inliers, e.loose, e.cells, e.views),
+            (5, 3, 4, 3, 2)
+        );
+        assert!((e.mean_probability - 0.7).abs() < 1e-6);
+        let expected_area = (780.0 / 800.0) * (580.0 / 600.0);
+        assert!(
+            (e.bbox_area - expected_area).abs() < 1e-6,
+            "{}",
+            e.bbox_area
+        );
+    }
+}

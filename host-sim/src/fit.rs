@@ -1,0 +1,273 @@
+//! `gomatch-sim fit-acceptance`: fits the core's [`AcceptanceRule`] on `eval` reports of
+//! training scenes. Each query with a candidate pose (RANSAC found one with 4 inliers) is
+//! one example: its [`Evidence::features`] and whether the pose is right
+//! ([`QueryResult::candidate_right`]). The logistic weights maximise the L2-regularised
+//! likelihood on standardised features (Newton's method, deterministic), and are then
+//! expressed on the raw features; `min_confidence` is the lowest confidence at which the
+//! accepted training poses are at most `--max-wrong` wrong. Reports of other scenes given
+//! with `--check` are scored with the fitted rule (the core's own
+//! [`AcceptanceRule::confidence`] on their stored evidence, so the figures are those a
+//! new `eval` run with the rule gives).
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context};
+use clap::Parser;
+use gomatch::acceptance::{AcceptanceRule, Evidence, FEATURES};
+use nalgebra::{SMatrix, SVector};
+use serde::{Deserialize, Serialize};
+
+use crate::eval::{QueryResult, Report};
+
+/// Fit the acceptance rule's weights and threshold on `eval` reports.
+#[derive(Debug, Clone, Parser)]
+pub struct Args {
+    /// `eval` JSON reports of the training scenes.
+    #[arg(long, num_args = 1.., required = true)]
+    pub reports: Vec<PathBuf>,
+    /// Reports scored with the fitted rule, not used in the fit (e.g. validation scenes).
+    #[arg(long, num_args = 1..)]
+    pub check: Vec<PathBuf>,
+    /// Largest share of wrong poses among the accepted training poses.
+    #[arg(long, default_value_t = 0.005)]
+    pub max_wrong: f64,
+    /// L2 penalty on the standardised weights.
+    #[arg(long, default_value_t = 1e-2)]
+    pub l2: f64,
+    /// Where to write the rule (JSON, read by `eval --acceptance`).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// One training example.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Example {
+    /// The pose's evidence.
+    pub evidence: Evidence,
+    /// Whether the pose is right.
+    pub right: bool,
+}
+
+/// Precision and recall of a rule on a set of examples (see [`crate::eval::AcceptanceSummary`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Scores {
+    /// Examples (candidate poses).
+    pub candidates: usize,
+    /// Right ones.
+    pub right: usize,
+    /// Accepted.
+    pub accepted: usize,
+    /// Accepted and wrong.
+    pub accepted_wrong: usize,
+}
+
+impl Scores {
+    /// Scores `rule` on `examples`.
+    pub fn of(rule: &AcceptanceRule, examples: &[Example]) -> Self {
+        let accepted: Vec<&Example> = examples
+            .iter()
+            .filter(|e| rule.accepts(rule.confidence(&e.evidence)))
+            .collect();
+        Self {
+            candidates: examples.len(),
+            right: examples.iter().filter(|e| e.right).count(),
+            accepted: accepted.len(),
+            accepted_wrong: accepted.iter().filter(|e| !e.right).count(),
+        }
+    }
+
+    fn describe(&self) -> String {
+        let kept = self.accepted - self.accepted_wrong;
+        let percent = |a: usize, b: usize| {
+            if b == 0 {
+                "-".to_string()
+            } else {
+                format!("{:.1} %", 100.0 * a as f64 / b as f64)
+            }
+        };
+        format!(
+            "{} candidates ({} right): {} accepted, {} wrong (precision {}), recall {} ({kept} of {})",
+            self.candidates,
+            self.right,
+            self.accepted,
+            self.accepted_wrong,
+            percent(kept, self.accepted),
+            percent(kept, self.right),
+            self.right
+        )
+    }
+}
+
+/// The written file: the rule (read by `eval --acceptance`) and how it was obtained.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FitOutput {
+    /// Constant term.
+    pub bias: f32,
+    /// Feature weights.
+    pub weights: [f32; FEATURES],
+    /// Threshold.
+    pub min_confidence: f32,
+    /// The training reports' scenes.
+    pub training_scenes: Vec<String>,
+    /// The rule on the training examples.
+    pub training: Scores,
+}
+
+impl FitOutput {
+    /// The rule alone.
+    pub fn rule(&self) -> AcceptanceRule {
+        AcceptanceRule {
+            bias: self.bias,
+            weights: self.weights,
+            min_confidence: self.min_confidence,
+        }
+    }
+}
+
+/// The examples of a report: its queries with a candidate pose.
+pub fn examples(report: &Report) -> Vec<Example> {
+    report.per_query.iter().filter_map(example).collect()
+}
+
+fn example(q: &QueryResult) -> Option<Example> {
+    Some(Example {
+        evidence: q.evidence?,
+        right: q.candidate_right?,
+    })
+}
+
+fn read_report(path: &Path) -> anyhow::Result<Report> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
+}
+
+/// Parameters of the logistic model: the bias and one weight per feature.
+const DIM: usize = FEATURES + 1;
+
+/// Logistic regression weights `(bias, weights)` on raw features, fitted on standardised
+/// ones with an L2 penalty `l2` (not on the bias) by Newton's method.
+pub fn logistic_fit(examples: &[Example], l2: f64) -> anyhow::Result<(f64, [f64; FEATURES])> {
+    let n = examples.len();
+    if n == 0 {
+        bail!("no example with a candidate pose");
+    }
+    let raw: Vec<[f64; FEATURES]> = examples
+        .iter()
+        .map(|e| e.evidence.features().map(f64::from))
+        .collect();
+    let mut mean = [0.0; FEATURES];
+    let mut scale = [0.0; FEATURES];
+    for j in 0..FEATURES {
+        mean[j] = raw.iter().map(|f| f[j]).sum::<f64>() / n as f64;
+        let var = raw.iter().map(|f| (f[j] - mean[j]).powi(2)).sum::<f64>() / n as f64;
+        scale[j] = if var > 1e-12 { var.sqrt() } else { 1.0 };
+    }
+    let rows: Vec<(SVector<f64, DIM>, f64)> = raw
+        .iter()
+        .zip(examples)
+        .map(|(f, e)| {
+            let x = SVector::<f64, DIM>::from_fn(|j, _| match j {
+                0 => 1.0,
+                _ => (f[j - 1] - mean[j - 1]) / scale[j - 1],
+            });
+            (x, f64::from(u8::from(e.right)))
+        })
+        .collect();
+    let mut penalty = SMatrix::<f64, DIM, DIM>::identity() * (l2 * n as f64);
+    penalty[(0, 0)] = 0.0;
+    let mut beta = SVector::<f64, DIM>::zeros();
+    for _ in 0..100 {
+        let mut gradient = -(penalty * beta);
+        let mut hessian = penalty;
+        for (x, y) in &rows {
+            let p = 1.0 / (1.0 + (-x.dot(&beta)).exp());
+            gradient += x * (y - p);
+            hessian += x * x.transpose() * (p * (1.0 - p)).max(1e-9);
+        }
+        let step = hessian
+            .cholesky()
+            .context("singular Hessian (too few or identical examples)")?
+            .solve(&gradient);
+        beta += step;
+        if step.amax() < 1e-10 {
+            break;
+        }
+    }
+    let mut weights = [0.0; FEATURES];
+    let mut bias = beta[0];
+    for j in 0..FEATURES {
+        weights[j] = beta[j + 1] / scale[j];
+        bias -= weights[j] * mean[j];
+    }
+    Ok((bias, weights))
+}
+
+/// The lowest threshold at which at most `max_wrong` of the accepted examples are wrong
+/// (1.0, accepting nothing below certainty, when no threshold achieves it).
+pub fn threshold_for(rule: &AcceptanceRule, examples: &[Example], max_wrong: f64) -> f32 {
+    let mut scored: Vec<(f32, bool)> = examples
+        .iter()
+        .map(|e| (rule.confidence(&e.evidence), e.right))
+        .collect();
+    scored.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let mut best = 1.0;
+    let (mut accepted, mut wrong) = (0usize, 0usize);
+    for (i, &(confidence, right)) in scored.iter().enumerate() {
+        accepted += 1;
+        wrong += usize::from(!right);
+        let tied_with_next = scored.get(i + 1).is_some_and(|n| n.0 == confidence);
+        if !tied_with_next && wrong as f64 <= max_wrong * accepted as f64 {
+            best = confidence;
+        }
+    }
+    best
+}
+
+/// Fits the rule on the examples.
+pub fn fit(examples: &[Example], l2: f64, max_wrong: f64) -> anyhow::Result<AcceptanceRule> {
+    let (bias, weights) = logistic_fit(examples, l2)?;
+    let mut rule = AcceptanceRule {
+        bias: bias as f32,
+        weights: weights.map(|w| w as f32),
+        min_confidence: 0.0,
+    };
+    rule.min_confidence = threshold_for(&rule, examples, max_wrong);
+    Ok(rule)
+}
+
+/// Runs `gomatch-sim fit-acceptance`.
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let mut training = Vec::new();
+    let mut scenes = Vec::new();
+    for path in &args.reports {
+        let report = read_report(path)?;
+        let examples = examples(&report);
+        println!("{}: {} examples", report.scene, examples.len());
+        scenes.push(report.scene);
+        training.extend(examples);
+    }
+    let rule = fit(&training, args.l2, args.max_wrong)?;
+    let scores = Scores::of(&rule, &training);
+    println!("training: {}", scores.describe());
+    println!("rule: {rule:?}");
+    for path in &args.check {
+        let report = read_report(path)?;
+        println!(
+            "check {}: {}",
+            report.scene,
+            Scores::of(&rule, &examples(&report)).describe()
+        );
+    }
+    let output = FitOutput {
+        bias: rule.bias,
+        weights: rule.weights,
+        min_confidence: rule.min_confidence,
+        training_scenes: scenes,
+        training: scores,
+    };
+    std::fs::write(&args.out, serde_json::to_string_pretty(&output)? + "\n")
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    println!("wrote {}", args.out.display());
+    Ok(())
+}

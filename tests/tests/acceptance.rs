@@ -1,0 +1,145 @@
+//! `gomatch-sim fit-acceptance`: the logistic fit and threshold on small hand-made example
+//! sets, the command on tiny reports, and the core's built-in rule equal to the committed
+//! fit (`models/acceptance/rule.json`).
+
+use std::path::Path;
+
+use gomatch::acceptance::{AcceptanceRule, Evidence, FEATURES};
+use gomatch_sim::eval::{evaluate, read_rule, EvalOptions, Matching, Report, CAPACITY};
+use gomatch_sim::fit::{fit, run, threshold_for, Args, Example, FitOutput, Scores};
+use gomatch_sim::protocol::ProtocolParams;
+use gomatch_sim::synthetic::synthetic_scene;
+
+/// Evidence whose pose is right with many, spread, multi-view inliers, or wrong with few.
+fn example(i: u32, right: bool) -> Example {
+    let (inliers, cells, views) = if right {
+        (20 + 7 * (i % 9), 8 + i % 20, 2 + i % 6)
+    } else {
+        (4 + i % 9, 1 + i % 5, 1 + i % 3)
+    };
+    Example {
+        evidence: Evidence {
+            merged: inliers * 2 + 10 * u32::from(!right),
+            inliers,
+            loose: inliers + i % 4,
+            cells,
+            bbox_area: cells as f32 / 64.0,
+            mean_probability: 0.5 + 0.01 * (i % 10) as f32,
+            views,
+        },
+        right,
+    }
+}
+
+fn examples() -> Vec<Example> {
+    let mut all: Vec<Example> = (0..30).map(|i| example(i, true)).collect();
+    all.extend((0..12).map(|i| example(i, false)));
+    // A wrong pose that looks like a right one.
+    all.push(Example {
+        right: false,
+        ..example(3, true)
+    });
+    all
+}
+
+#[test]
+fn the_fit_refuses_the_wrong_training_poses_and_is_deterministic() {
+    let examples = examples();
+    let rule = fit(&examples, 1e-2, 0.0).unwrap();
+    let scores = Scores::of(&rule, &examples);
+    println!("{rule:?}: {scores:?}");
+    assert_eq!(scores.accepted_wrong, 0);
+    assert_eq!((scores.candidates, scores.right), (43, 30));
+    assert!(scores.accepted >= 20, "{scores:?}");
+    assert!(rule.weights.iter().all(|w| w.is_finite()));
+    assert_eq!(fit(&examples, 1e-2, 0.0).unwrap(), rule);
+    // Tolerating one wrong pose in 30 accepts more.
+    let tolerant = fit(&examples, 1e-2, 1.0 / 30.0).unwrap();
+    assert!(tolerant.min_confidence <= rule.min_confidence);
+    assert!(Scores::of(&tolerant, &examples).accepted >= scores.accepted);
+}
+
+#[test]
+fn the_threshold_is_the_lowest_confidence_within_the_wrong_share() {
+    // Confidence grows with the number of views: views 1 (wrong), 2, 3 (wrong), 4, 5.
+    let rule = AcceptanceRule {
+        bias: -3.0,
+        weights: [0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+        min_confidence: 0.0,
+    };
+    let by_views = |views: u32, right: bool| Example {
+        evidence: Evidence {
+            views,
+            ..Evidence::default()
+        },
+        right,
+    };
+    let examples = [
+        by_views(1, false),
+        by_views(2, true),
+        by_views(3, false),
+        by_views(4, true),
+        by_views(5, true),
+    ];
+    let confidence = |views| rule.confidence(&by_views(views, true).evidence);
+    assert_eq!(threshold_for(&rule, &examples, 0.0), confidence(4));
+    assert_eq!(threshold_for(&rule, &examples, 0.3), confidence(2));
+    assert_eq!(threshold_for(&rule, &examples, 0.5), confidence(1));
+    // Nothing reaches the share: accept only certainty.
+    assert_eq!(threshold_for(&rule, &[by_views(9, false)], 0.0), 1.0);
+}
+
+/// A report of a synthetic scene whose queries carry the given examples.
+fn report_with(examples: &[Example]) -> Report {
+    let scene = synthetic_scene(1, 0);
+    let options = EvalOptions {
+        protocol: ProtocolParams::for_localizer(10, examples.len(), 0, CAPACITY),
+        localizer: gomatch::LocalizerConfig::new(),
+        threads: 1,
+    };
+    let mut report = evaluate(&scene, Matching::Oracle, &options, false).unwrap();
+    assert_eq!(report.per_query.len(), examples.len());
+    for (q, e) in report.per_query.iter_mut().zip(examples) {
+        q.evidence = Some(e.evidence);
+        q.features = Some(e.evidence.features());
+        q.candidate_right = Some(e.right);
+    }
+    report
+}
+
+#[test]
+fn the_command_writes_a_rule_that_eval_reads() {
+    let all = examples();
+    let dir = std::env::temp_dir().join(format!("gomatch-fit-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (train, check, out) = (
+        dir.join("a.json"),
+        dir.join("b.json"),
+        dir.join("rule.json"),
+    );
+    for (path, part) in [(&train, &all[..10]), (&check, &all[30..36])] {
+        std::fs::write(path, serde_json::to_string(&report_with(part)).unwrap()).unwrap();
+    }
+    let args = Args {
+        reports: vec![train.clone()],
+        check: vec![check],
+        max_wrong: 0.0,
+        l2: 1e-2,
+        out: out.clone(),
+    };
+    // The ten training examples are all right: the fit still ends with finite weights.
+    run(&args).unwrap();
+    let written: FitOutput = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    assert_eq!(read_rule(&out).unwrap(), written.rule());
+    assert_eq!(written.training.candidates, 10);
+    assert_eq!(written.training_scenes.len(), 1);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn the_built_in_rule_is_the_committed_fit() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/acceptance/rule.json");
+    let committed = read_rule(&path).unwrap();
+    assert_eq!(AcceptanceRule::FITTED, committed);
+    assert_eq!(committed.weights.len(), FEATURES);
+}
