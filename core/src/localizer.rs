@@ -1103,7 +1103,7 @@ mod tests {
             (5, [1e39, 0.0, 1.0]),
             (6, ahead(4.0)),
             (7, ahead(5.0)),
-            // At the camera centre (depth far below 1e-3 of the median, 4).
+            // At the camera centre (depth far below 1e-5 of the median, 4).
             (8, [0.0, 0.0, 2.3e-10]),
             (9, ahead(6.0)),
         ];
