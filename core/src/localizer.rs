@@ -936,6 +936,20 @@ mod tests {
                 run(&good[..20], squeezed, ids),
                 Err(Error::DistortionNotInvertible { index: 0 })
             );
+            // Strong tangential distortion: Newton's undistortion of keypoint 3 fails.
+            let tangential = Camera::from_colmap(
+                CameraModel::OpenCv,
+                640,
+                480,
+                &[500.0, 500.0, 320.0, 240.0, 0.0, 0.0, 1.0, 1.0],
+            )
+            .expect("finite intrinsics");
+            let mut corner = std::vec![[640.0f32, 480.0]; 20];
+            corner[3] = [100.0, 400.0];
+            assert_eq!(
+                run(&corner, tangential, ids),
+                Err(Error::UndistortionDidNotConverge { index: 3 })
+            );
         });
     }
 
