@@ -998,6 +998,20 @@ mod tests {
                 run(&good[..20], squeezed, ids),
                 Err(Error::DistortionNotInvertible { index: 0 })
             );
+            // Strong tangential distortion: Newton's undistortion of keypoint 3 fails.
+            let tangential = Camera::from_colmap(
+                CameraModel::OpenCv,
+                640,
+                480,
+                &[500.0, 500.0, 320.0, 240.0, 0.0, 0.0, 1.0, 1.0],
+            )
+            .expect("finite intrinsics");
+            let mut corner = std::vec![[640.0f32, 480.0]; 20];
+            corner[3] = [100.0, 400.0];
+            assert_eq!(
+                run(&corner, tangential, ids),
+                Err(Error::UndistortionDidNotConverge { index: 3 })
+            );
         });
     }
 
@@ -1253,7 +1267,7 @@ mod tests {
             (5, [1e39, 0.0, 1.0]),
             (6, ahead(4.0)),
             (7, ahead(5.0)),
-            // At the camera centre (depth far below 1e-3 of the median, 4).
+            // At the camera centre (depth far below 1e-5 of the median, 4).
             (8, [0.0, 0.0, 2.3e-10]),
             (9, ahead(6.0)),
         ];

@@ -157,7 +157,7 @@ pub const ROTATION_TOLERANCE: f64 = 1e-6;
 
 /// Smallest depth of a usable projection, as a fraction of the camera's reference depth
 /// (the median depth of the points it observes); see [`ProjectionRule`].
-pub const MIN_DEPTH_RATIO: f64 = 1e-3;
+pub const MIN_DEPTH_RATIO: f64 = 1e-5;
 
 /// Largest bearing coordinate, `|x/z|` and `|y/z|`, of a usable projection: 84.3 degrees
 /// off the optical axis, beyond the field of view of the camera models supported.

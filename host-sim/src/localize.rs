@@ -169,6 +169,8 @@ pub struct QueryOutcome {
     pub views_used: usize,
     /// The pose, when localized.
     pub pose: Option<ColmapPose>,
+    /// The acceptance rule's confidence in the best pose (`None` when RANSAC found none).
+    pub confidence: Option<f32>,
     /// Why not, when not localized.
     pub failure: Option<String>,
     /// The typed reason (the core's `Failure`).
@@ -402,6 +404,7 @@ impl Session<'_> {
                 .collect::<anyhow::Result<_>>()?,
             views_used: result.views_used,
             pose: result.outcome.as_ref().ok().map(ColmapPose::from),
+            confidence: result.confidence,
             failure: result.outcome.err().map(|f| f.to_string()),
             failure_detail: result.outcome.err(),
             counts: result.counts.into(),
@@ -439,7 +442,11 @@ fn print_outcome(outcome: &QueryOutcome) {
         outcome.timings_ms.total
     );
     match &outcome.failure {
-        None => println!("{}: localized ({summary})", outcome.name),
+        None => println!(
+            "{}: localized, confidence {:.3} ({summary})",
+            outcome.name,
+            outcome.confidence.unwrap_or(f32::NAN)
+        ),
         Some(reason) => println!("{}: NOT localized: {reason} ({summary})", outcome.name),
     }
 }
@@ -619,6 +626,7 @@ mod tests {
             views: Vec::new(),
             views_used: 0,
             pose: Some(colmap),
+            confidence: Some(0.99),
             failure: None,
             failure_detail: None,
             counts: Counts::default(),
