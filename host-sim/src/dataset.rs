@@ -37,6 +37,9 @@ pub struct Args {
     /// Bundler v0.3 bundle.out file (repeatable).
     #[arg(long)]
     pub bundler: Vec<PathBuf>,
+    /// OpenSfM dataset folder, reconstruction.json + tracks.csv (repeatable).
+    #[arg(long)]
+    pub opensfm: Vec<PathBuf>,
     /// Number of synthetic scenes to generate.
     #[arg(long, default_value_t = 0)]
     pub synthetic: u64,
@@ -81,7 +84,7 @@ impl Source {
     }
 }
 
-/// Totals of one source kind (`colmap`, `bal`, `bundler`, `synthetic`).
+/// Totals of one source kind (`colmap`, `bal`, `bundler`, `opensfm`, `synthetic`).
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct SourceSummary {
     /// Scenes read or generated.
@@ -250,6 +253,7 @@ fn sources(args: &Args) -> Vec<Source> {
         .map(|p| SceneSource::Colmap(p.clone()))
         .chain(args.bal.iter().map(|p| SceneSource::Bal(p.clone())))
         .chain(args.bundler.iter().map(|p| SceneSource::Bundler(p.clone())))
+        .chain(args.opensfm.iter().map(|p| SceneSource::OpenSfm(p.clone())))
         .map(Source::File);
     let synthetic = (0..args.synthetic).map(|index| Source::Synthetic {
         seed: args.synthetic_seed,
@@ -264,7 +268,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let sources = sources(args);
     anyhow::ensure!(
         !sources.is_empty(),
-        "no scene: give --colmap, --bal, --bundler or --synthetic"
+        "no scene: give --colmap, --bal, --bundler, --opensfm or --synthetic"
     );
     let started = Instant::now();
     let progress = ProgressBar::new(sources.len() as u64).with_style(

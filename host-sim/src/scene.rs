@@ -1,6 +1,6 @@
 //! The common in-memory structure-from-motion model: cameras, posed images with their 2D
-//! keypoints, and 3D points with their tracks. Every reader (COLMAP, BAL, Bundler) and the
-//! synthetic simulator produce a [`Scene`]; the localization protocol consumes one.
+//! keypoints, and 3D points with their tracks. Every reader (COLMAP, BAL, Bundler, OpenSfM)
+//! and the synthetic simulator produce a [`Scene`]; the localization protocol consumes one.
 //!
 //! Conventions (COLMAP's): poses map world to camera, `x_cam = R x + t`; the camera looks
 //! along +z; pixels have their origin at the top-left corner with y pointing down.
@@ -304,6 +304,8 @@ pub enum SceneSource {
     Bal(PathBuf),
     /// A Bundler v0.3 `bundle.out` file.
     Bundler(PathBuf),
+    /// An OpenSfM dataset folder (or its `reconstruction.json`), with `tracks.csv`.
+    OpenSfm(PathBuf),
 }
 
 impl SceneSource {
@@ -313,6 +315,7 @@ impl SceneSource {
             SceneSource::Colmap(dir) => crate::colmap::read_model(dir)?,
             SceneSource::Bal(path) => crate::bal::read_bal(path)?,
             SceneSource::Bundler(path) => crate::bundler::read_bundler(path)?,
+            SceneSource::OpenSfm(path) => crate::opensfm::read_opensfm(path)?,
         };
         scene.validate()?;
         Ok(scene)
@@ -325,8 +328,8 @@ fn file_name(path: &Path) -> Option<String> {
 
 impl SceneSource {
     /// Scene name `<kind>/<stem>`: the model folder for COLMAP (its parent scene folder for
-    /// the `<scene>/sparse/<n>` layout), the file stem for BAL, and the folder holding a
-    /// Bundler `bundle.out`.
+    /// the `<scene>/sparse/<n>` layout), the file stem for BAL, the folder holding a
+    /// Bundler `bundle.out`, and the OpenSfM dataset folder.
     pub fn name(&self) -> String {
         match self {
             SceneSource::Colmap(dir) => {
@@ -348,6 +351,11 @@ impl SceneSource {
                     _ => path.file_stem().map(|s| s.to_string_lossy().into_owned()),
                 };
                 format!("bundler/{}", stem.unwrap_or_default())
+            }
+            SceneSource::OpenSfm(path) => {
+                let (reconstruction, _) = crate::opensfm::model_files(path);
+                let folder = reconstruction.parent().and_then(file_name);
+                format!("opensfm/{}", folder.unwrap_or_default())
             }
         }
     }
@@ -478,6 +486,12 @@ mod tests {
         assert_eq!(
             name(SceneSource::Bundler("/data/kermit/bundle.out".into())),
             "bundler/kermit"
+        );
+        assert_eq!(
+            name(SceneSource::OpenSfm(
+                "/data/opensfm/bathtub/reconstruction.json".into()
+            )),
+            "opensfm/bathtub"
         );
     }
 }

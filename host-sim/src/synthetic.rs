@@ -283,8 +283,17 @@ impl SyntheticQueries {
 /// `synthetic/<index>`. The same `(seed, index)` always gives the same scene.
 pub fn synthetic_scene(seed: u64, index: u64) -> Scene {
     let mut rng = Pcg64Mcg::seed_from_u64(derive_seed(seed, &[index]));
-    let layout = Layout::ALL[rng.random_range(0..Layout::ALL.len())];
+    let layout = draw_layout(&mut rng);
     generate(&mut rng, layout, format!("synthetic/{index:04}"))
+}
+
+/// The layout of synthetic scene `index` of the family seeded by `seed`.
+pub fn synthetic_layout(seed: u64, index: u64) -> Layout {
+    draw_layout(&mut Pcg64Mcg::seed_from_u64(derive_seed(seed, &[index])))
+}
+
+fn draw_layout(rng: &mut Pcg64Mcg) -> Layout {
+    Layout::ALL[rng.random_range(0..Layout::ALL.len())]
 }
 
 /// Generates one scene of the given layout from `rng`.

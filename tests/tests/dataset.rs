@@ -15,6 +15,7 @@ fn args(output: PathBuf) -> Args {
         colmap: Vec::new(),
         bal: Vec::new(),
         bundler: Vec::new(),
+        opensfm: Vec::new(),
         synthetic: 0,
         synthetic_seed: 3,
         k: 10,
