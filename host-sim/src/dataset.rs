@@ -14,7 +14,7 @@ use safetensors::Dtype;
 
 use crate::protocol::{scene_samples, ProtocolParams, QuerySample};
 use crate::scene::{Scene, SceneSource};
-use crate::synthetic::synthetic_scene;
+use crate::synthetic::{collection_scene, synthetic_scene};
 
 /// Value of the `format` metadata entry.
 pub const FORMAT: &str = "gomatch-dataset";
@@ -46,6 +46,10 @@ pub struct Args {
     /// Seed of the synthetic scene family.
     #[arg(long, default_value_t = 0)]
     pub synthetic_seed: u64,
+    /// Number of synthetic photo collections of a landmark to generate (seeded by
+    /// `--synthetic-seed`; scenes `collection/<index>`).
+    #[arg(long, default_value_t = 0)]
+    pub synthetic_collection: u64,
     /// Co-visible views per query.
     #[arg(long, default_value_t = 10)]
     pub k: usize,
@@ -73,6 +77,7 @@ impl Args {
 enum Source {
     File(SceneSource),
     Synthetic { seed: u64, index: u64 },
+    Collection { seed: u64, index: u64 },
 }
 
 impl Source {
@@ -80,6 +85,7 @@ impl Source {
         match self {
             Source::File(source) => source.load(),
             Source::Synthetic { seed, index } => Ok(synthetic_scene(*seed, *index)),
+            Source::Collection { seed, index } => Ok(collection_scene(*seed, *index)),
         }
     }
 }
@@ -259,7 +265,11 @@ fn sources(args: &Args) -> Vec<Source> {
         seed: args.synthetic_seed,
         index,
     });
-    files.chain(synthetic).collect()
+    let collections = (0..args.synthetic_collection).map(|index| Source::Collection {
+        seed: args.synthetic_seed,
+        index,
+    });
+    files.chain(synthetic).chain(collections).collect()
 }
 
 /// Runs the command: builds every scene's samples, writes the file, prints a summary.
@@ -268,7 +278,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let sources = sources(args);
     anyhow::ensure!(
         !sources.is_empty(),
-        "no scene: give --colmap, --bal, --bundler, --opensfm or --synthetic"
+        "no scene: give --colmap, --bal, --bundler, --opensfm, --synthetic or --synthetic-collection"
     );
     let started = Instant::now();
     let progress = ProgressBar::new(sources.len() as u64).with_style(

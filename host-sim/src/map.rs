@@ -360,7 +360,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 .with_context(|| format!("decoding {}", stats.map.display()))?;
             print_stats(&StorageBreakdown::of(&map, blob.len()));
         }
-        MapCommand::Rank(rank) => print_rank(&rank.source.source()?.load()?, rank.block),
+        MapCommand::Rank(rank) => print_rank(&rank.source.source()?.load_as_stored()?, rank.block),
     }
     Ok(())
 }

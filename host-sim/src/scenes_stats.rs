@@ -21,7 +21,7 @@ use serde::Serialize;
 
 use crate::protocol::{quantiles, scene_samples, ProtocolParams, QuerySample};
 use crate::scene::{median, Image, Scene, SceneSource};
-use crate::synthetic::{synthetic_layout, synthetic_scene};
+use crate::synthetic::{collection_scene, synthetic_layout, synthetic_scene, Layout};
 
 /// The validation scenes of `shared/data/README.md`: listed per scene, never pooled into
 /// the training column the simulator is tuned on.
@@ -77,6 +77,9 @@ pub struct StatsArgs {
     /// Seed of the synthetic scene family.
     #[arg(long, default_value_t = 0)]
     pub synthetic_seed: u64,
+    /// Synthetic photo collections to generate (`dataset --synthetic-collection`).
+    #[arg(long, default_value_t = 0)]
+    pub synthetic_collection: u64,
     /// Protocol queries per scene.
     #[arg(long, default_value_t = 20)]
     pub queries: usize,
@@ -369,9 +372,14 @@ fn run_stats(args: &StatsArgs) -> anyhow::Result<()> {
         });
     }
     let mut layouts: BTreeMap<String, Distributions> = BTreeMap::new();
-    for index in 0..args.synthetic {
-        let scene = synthetic_scene(args.synthetic_seed, index);
-        let layout = format!("{:?}", synthetic_layout(args.synthetic_seed, index));
+    let seed = args.synthetic_seed;
+    let generated = (0..args.synthetic)
+        .map(|i| (synthetic_layout(seed, i), synthetic_scene(seed, i)))
+        .chain(
+            (0..args.synthetic_collection).map(|i| (Layout::Collection, collection_scene(seed, i))),
+        );
+    for (layout, scene) in generated {
+        let layout = format!("{layout:?}");
         eprintln!("{} ({layout})", scene.name);
         layouts
             .entry(format!("synthetic/{}", layout.to_lowercase()))
@@ -532,6 +540,7 @@ fn plot_groups(path: &Path, groups: &[Row]) -> anyhow::Result<()> {
         .copied()
         .filter(|m| m.0 != "queries")
         .collect();
+    let font = crate::eval::register_font();
     let root = BitMapBackend::new(path, (1500, 1000)).into_drawing_area();
     root.fill(&WHITE)?;
     let panels = root.split_evenly((3, 4));
@@ -579,7 +588,10 @@ fn plot_groups(path: &Path, groups: &[Row]) -> anyhow::Result<()> {
         }
     }
     let legend = panels.last().context("plot panels")?;
-    for (i, group) in groups.iter().enumerate() {
+    if !font {
+        eprintln!("no TrueType font found: the plot has boxes but no text");
+    }
+    for (i, group) in groups.iter().enumerate().filter(|_| font) {
         let colour = colours[i % colours.len()];
         legend.draw(&Text::new(
             group.name.clone(),

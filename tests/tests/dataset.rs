@@ -18,6 +18,7 @@ fn args(output: PathBuf) -> Args {
         opensfm: Vec::new(),
         synthetic: 0,
         synthetic_seed: 3,
+        synthetic_collection: 0,
         k: 10,
         queries_per_scene: 4,
         seed: 9,
