@@ -1,6 +1,8 @@
 //! Bundler v0.3 `bundle.out` reader. Same camera model as BAL (see [`crate::bal`] for the
 //! exact conversion), with the rotation stored as a 3x3 matrix; cameras with `f = 0` were
-//! not placed by Bundler and are skipped together with their observations.
+//! not placed by Bundler and are skipped together with their observations. Image names
+//! come from the name list beside the file (`list.txt` or `name_list.txt`, one image per
+//! camera, the name first on each line), when there is one.
 
 use std::path::Path;
 
@@ -24,7 +26,42 @@ pub fn read_bundler(path: &Path) -> anyhow::Result<Scene> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     let name = SceneSource::Bundler(path.to_path_buf()).name();
-    parse_bundler(&text, name).with_context(|| format!("parsing {}", path.display()))
+    let mut scene =
+        parse_bundler(&text, name).with_context(|| format!("parsing {}", path.display()))?;
+    let folder = path.parent().unwrap_or(Path::new("."));
+    let list = NAME_LISTS
+        .iter()
+        .map(|n| folder.join(n))
+        .find(|p| p.is_file());
+    if let Some(list) = list {
+        let names = std::fs::read_to_string(&list)
+            .with_context(|| format!("reading {}", list.display()))?;
+        apply_name_list(&mut scene, &names)
+            .with_context(|| format!("parsing {}", list.display()))?;
+    }
+    Ok(scene)
+}
+
+/// Name lists Bundler's tools write beside `bundle.out`, in the order they are looked for.
+const NAME_LISTS: [&str; 2] = ["list.txt", "name_list.txt"];
+
+/// Names the images from a name list: line `i` (its first token) names camera `i`. The list
+/// must have one non-empty line per camera of the file.
+pub fn apply_name_list(scene: &mut Scene, list: &str) -> Result<(), FormatError> {
+    let names: Vec<&str> = list
+        .lines()
+        .filter_map(|l| l.split_whitespace().next())
+        .collect();
+    for image in scene.images.values_mut() {
+        let index = image.id as usize;
+        let name = names.get(index).ok_or(FormatError::OutOfRange {
+            what: "camera index in the name list",
+            value: index as u64,
+            limit: names.len() as u64,
+        })?;
+        image.name = (*name).to_string();
+    }
+    Ok(())
 }
 
 /// Parses the text of a Bundler v0.3 file: header, `num_cameras num_points`, per camera
@@ -99,6 +136,17 @@ mod tests {
             .bearing(&scene.points[&0].xyz, 0)
             .unwrap();
         assert_eq!(bearing, [0.0, 0.0]);
+    }
+
+    #[test]
+    fn name_lists_name_images_by_camera_index() {
+        let mut scene = parse_bundler(TINY, "bundler/tiny".into()).unwrap();
+        apply_name_list(&mut scene, "a.jpg 0 500\nb.jpg\n").unwrap();
+        assert_eq!(scene.images[&0].name, "a.jpg");
+        assert!(matches!(
+            apply_name_list(&mut scene, ""),
+            Err(FormatError::OutOfRange { .. })
+        ));
     }
 
     #[test]

@@ -14,7 +14,7 @@ use safetensors::Dtype;
 
 use crate::protocol::{scene_samples, ProtocolParams, QuerySample};
 use crate::scene::{Scene, SceneSource};
-use crate::synthetic::synthetic_scene;
+use crate::synthetic::{collection_scene, synthetic_scene};
 
 /// Value of the `format` metadata entry.
 pub const FORMAT: &str = "gomatch-dataset";
@@ -37,12 +37,19 @@ pub struct Args {
     /// Bundler v0.3 bundle.out file (repeatable).
     #[arg(long)]
     pub bundler: Vec<PathBuf>,
+    /// OpenSfM dataset folder, reconstruction.json + tracks.csv (repeatable).
+    #[arg(long)]
+    pub opensfm: Vec<PathBuf>,
     /// Number of synthetic scenes to generate.
     #[arg(long, default_value_t = 0)]
     pub synthetic: u64,
     /// Seed of the synthetic scene family.
     #[arg(long, default_value_t = 0)]
     pub synthetic_seed: u64,
+    /// Number of synthetic photo collections of a landmark to generate (seeded by
+    /// `--synthetic-seed`; scenes `collection/<index>`).
+    #[arg(long, default_value_t = 0)]
+    pub synthetic_collection: u64,
     /// Co-visible views per query.
     #[arg(long, default_value_t = 10)]
     pub k: usize,
@@ -70,6 +77,7 @@ impl Args {
 enum Source {
     File(SceneSource),
     Synthetic { seed: u64, index: u64 },
+    Collection { seed: u64, index: u64 },
 }
 
 impl Source {
@@ -77,11 +85,12 @@ impl Source {
         match self {
             Source::File(source) => source.load(),
             Source::Synthetic { seed, index } => Ok(synthetic_scene(*seed, *index)),
+            Source::Collection { seed, index } => Ok(collection_scene(*seed, *index)),
         }
     }
 }
 
-/// Totals of one source kind (`colmap`, `bal`, `bundler`, `synthetic`).
+/// Totals of one source kind (`colmap`, `bal`, `bundler`, `opensfm`, `synthetic`).
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct SourceSummary {
     /// Scenes read or generated.
@@ -250,12 +259,17 @@ fn sources(args: &Args) -> Vec<Source> {
         .map(|p| SceneSource::Colmap(p.clone()))
         .chain(args.bal.iter().map(|p| SceneSource::Bal(p.clone())))
         .chain(args.bundler.iter().map(|p| SceneSource::Bundler(p.clone())))
+        .chain(args.opensfm.iter().map(|p| SceneSource::OpenSfm(p.clone())))
         .map(Source::File);
     let synthetic = (0..args.synthetic).map(|index| Source::Synthetic {
         seed: args.synthetic_seed,
         index,
     });
-    files.chain(synthetic).collect()
+    let collections = (0..args.synthetic_collection).map(|index| Source::Collection {
+        seed: args.synthetic_seed,
+        index,
+    });
+    files.chain(synthetic).chain(collections).collect()
 }
 
 /// Runs the command: builds every scene's samples, writes the file, prints a summary.
@@ -264,7 +278,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let sources = sources(args);
     anyhow::ensure!(
         !sources.is_empty(),
-        "no scene: give --colmap, --bal, --bundler or --synthetic"
+        "no scene: give --colmap, --bal, --bundler, --opensfm, --synthetic or --synthetic-collection"
     );
     let started = Instant::now();
     let progress = ProgressBar::new(sources.len() as u64).with_style(

@@ -913,7 +913,7 @@ const FONT_FILES: [&str; 3] = [
 
 /// Registers the first readable font of [`FONT_FILES`] as "sans-serif" (once); whether
 /// one is available.
-fn register_font() -> bool {
+pub(crate) fn register_font() -> bool {
     static REGISTERED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     *REGISTERED.get_or_init(|| {
         FONT_FILES.iter().any(|path| {

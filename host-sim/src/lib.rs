@@ -2,7 +2,7 @@
 //! a desktop machine with files, threads and clocks.
 //!
 //! Scenes: [`scene`] is the in-memory structure-from-motion model that the readers
-//! ([`colmap`], [`bal`], [`bundler`]) and the simulator ([`synthetic`]) produce;
+//! ([`colmap`], [`bal`], [`bundler`], [`opensfm`]) and the simulator ([`synthetic`]) produce;
 //! [`protocol`] turns a scene into localization samples with ground truth and scores
 //! results, for both the training set ([`dataset`]) and evaluation; [`map`] turns a scene
 //! into the core's geometric-only map blob.
@@ -14,9 +14,11 @@ pub mod dataset;
 pub mod keypoints;
 pub mod localize;
 pub mod map;
+pub mod opensfm;
 pub mod parse;
 pub mod protocol;
 pub mod scene;
+pub mod scenes_stats;
 pub mod synthetic;
 
 pub mod pnp;

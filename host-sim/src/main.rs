@@ -17,6 +17,8 @@ enum Command {
     Version,
     /// Write localization training samples from real and synthetic scenes.
     Dataset(gomatch_sim::dataset::Args),
+    /// Scene statistics: real scenes against the synthetic generator.
+    Scenes(gomatch_sim::scenes_stats::Args),
     /// Build or inspect a geometric-only map blob.
     Map(gomatch_sim::map::Args),
     /// Run RANSAC-PnP on the shared synthetic sets and compare with PoseLib.
@@ -41,6 +43,7 @@ fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Version => println!("gomatch {}", env!("CARGO_PKG_VERSION")),
         Command::Dataset(args) => gomatch_sim::dataset::run(&args)?,
+        Command::Scenes(args) => gomatch_sim::scenes_stats::run(&args)?,
         Command::Map(args) => gomatch_sim::map::run(&args)?,
         Command::Pnp(args) => gomatch_sim::pnp::run(&args)?,
         Command::Conform(args) => gomatch_sim::conform::run(&args)?,

@@ -72,16 +72,20 @@ pub struct ModelArgs {
     /// Bundler v0.3 bundle.out file.
     #[arg(long)]
     pub bundler: Option<PathBuf>,
+    /// OpenSfM dataset folder (reconstruction.json + tracks.csv; the largest reconstruction).
+    #[arg(long)]
+    pub opensfm: Option<PathBuf>,
 }
 
 impl ModelArgs {
     /// The selected source.
     pub fn source(&self) -> anyhow::Result<SceneSource> {
-        match (&self.colmap, &self.bal, &self.bundler) {
-            (Some(dir), None, None) => Ok(SceneSource::Colmap(dir.clone())),
-            (None, Some(file), None) => Ok(SceneSource::Bal(file.clone())),
-            (None, None, Some(file)) => Ok(SceneSource::Bundler(file.clone())),
-            _ => anyhow::bail!("give exactly one of --colmap, --bal, --bundler"),
+        match (&self.colmap, &self.bal, &self.bundler, &self.opensfm) {
+            (Some(dir), None, None, None) => Ok(SceneSource::Colmap(dir.clone())),
+            (None, Some(file), None, None) => Ok(SceneSource::Bal(file.clone())),
+            (None, None, Some(file), None) => Ok(SceneSource::Bundler(file.clone())),
+            (None, None, None, Some(dir)) => Ok(SceneSource::OpenSfm(dir.clone())),
+            _ => anyhow::bail!("give exactly one of --colmap, --bal, --bundler, --opensfm"),
         }
     }
 }
@@ -428,7 +432,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             let blob = gomatch_tools::files::read_map_blob(&list.map)?;
             print_views(&Map::from_bytes(&blob)?)?;
         }
-        MapCommand::Rank(rank) => print_rank(&rank.source.source()?.load()?, rank.block),
+        MapCommand::Rank(rank) => print_rank(&rank.source.source()?.load_as_stored()?, rank.block),
     }
     Ok(())
 }

@@ -50,9 +50,16 @@ pub enum Layout {
     Object,
     /// Hilly terrain with a few buildings, seen obliquely from a flight path.
     Terrain,
+    /// An internet photo collection of a landmark (the paper's MegaDepth setting): photos
+    /// from all around it, at very different distances and zooms (telephoto from afar,
+    /// wide angle close by), each with its own camera, image size, radial distortion and
+    /// keypoint count (300-10,000, mostly untriangulated where there are many). Generated
+    /// by [`collection_scene`], outside the mix of [`synthetic_scene`].
+    Collection,
 }
 
 impl Layout {
+    /// The layouts [`synthetic_scene`] draws from.
     const ALL: [Layout; 4] = [
         Layout::Landmark,
         Layout::Street,
@@ -63,7 +70,7 @@ impl Layout {
     /// Typical camera-to-structure distance (scene units), which sets feature sizes.
     fn typical_distance(self) -> f64 {
         match self {
-            Layout::Landmark => 40.0,
+            Layout::Landmark | Layout::Collection => 40.0,
             Layout::Street => 12.0,
             Layout::Object => 3.5,
             Layout::Terrain => 80.0,
@@ -283,8 +290,32 @@ impl SyntheticQueries {
 /// `synthetic/<index>`. The same `(seed, index)` always gives the same scene.
 pub fn synthetic_scene(seed: u64, index: u64) -> Scene {
     let mut rng = Pcg64Mcg::seed_from_u64(derive_seed(seed, &[index]));
-    let layout = Layout::ALL[rng.random_range(0..Layout::ALL.len())];
+    let layout = draw_layout(&mut rng);
     generate(&mut rng, layout, format!("synthetic/{index:04}"))
+}
+
+/// The layout of synthetic scene `index` of the family seeded by `seed`.
+pub fn synthetic_layout(seed: u64, index: u64) -> Layout {
+    draw_layout(&mut Pcg64Mcg::seed_from_u64(derive_seed(seed, &[index])))
+}
+
+fn draw_layout(rng: &mut Pcg64Mcg) -> Layout {
+    Layout::ALL[rng.random_range(0..Layout::ALL.len())]
+}
+
+/// Seed stream of the photo-collection family, apart from [`synthetic_scene`]'s.
+const COLLECTION_STREAM: u64 = 0xC011_EC71;
+
+/// Generates photo-collection scene number `index` ([`Layout::Collection`]) of the family
+/// seeded by `seed`, named `collection/<index>`. The same `(seed, index)` always gives the
+/// same scene; [`synthetic_scene`]'s scenes do not depend on this family.
+pub fn collection_scene(seed: u64, index: u64) -> Scene {
+    let mut rng = Pcg64Mcg::seed_from_u64(derive_seed(seed, &[index, COLLECTION_STREAM]));
+    generate(
+        &mut rng,
+        Layout::Collection,
+        format!("collection/{index:04}"),
+    )
 }
 
 /// Generates one scene of the given layout from `rng`.
@@ -293,14 +324,23 @@ pub fn generate(rng: &mut Pcg64Mcg, layout: Layout, name: String) -> Scene {
     let structure = build_structure(rng, layout, image_count);
     let points = sample_points(rng, &structure, layout);
     let centres_and_targets = place_cameras(rng, &structure, layout, image_count);
-    let (cameras, shots) = make_cameras(rng, &centres_and_targets);
+    let (cameras, shots) = if layout == Layout::Collection {
+        make_collection_cameras(rng, &structure, &centres_and_targets)
+    } else {
+        make_cameras(rng, &centres_and_targets)
+    };
     let mut scene = Scene {
         name,
         cameras,
         ..Scene::default()
     };
-    observe(rng, &mut scene, &structure, &points, &shots);
+    observe(rng, &mut scene, &structure, &points, &shots, layout);
     scene
+}
+
+/// Log-uniform draw in `[low, high]`.
+fn log_uniform(rng: &mut Pcg64Mcg, low: f64, high: f64) -> f64 {
+    uniform(rng, low.ln(), high.ln()).exp()
 }
 
 fn uniform(rng: &mut Pcg64Mcg, low: f64, high: f64) -> f64 {
@@ -339,7 +379,7 @@ fn build_structure(rng: &mut Pcg64Mcg, layout: Layout, image_count: usize) -> St
     };
     let texture = |rng: &mut Pcg64Mcg| uniform(rng, 0.3, 3.0);
     match layout {
-        Layout::Landmark => {
+        Layout::Landmark | Layout::Collection => {
             let half = Vector3::new(
                 uniform(rng, 10.0, 20.0),
                 uniform(rng, 6.0, 12.0),
@@ -630,6 +670,30 @@ fn place_cameras(
                 }
             }
         }
+        Layout::Collection => {
+            while shots.len() < count {
+                // Anywhere on the accessible side, at any distance: wide baselines.
+                let angle = PI / 2.0 + uniform(rng, -2.6, 2.6);
+                let distance = structure.extent * log_uniform(rng, 1.3, 6.0);
+                let height = if rng.random_bool(0.15) {
+                    uniform(rng, 5.0, 40.0)
+                } else {
+                    uniform(rng, 1.4, 2.0)
+                };
+                let centre = Vector3::new(distance * angle.cos(), distance * angle.sin(), height);
+                // Close-ups frame a part of the building, distant shots its middle.
+                let spread = structure.extent * (0.6 - 0.4 * (distance / structure.extent / 6.0));
+                let target = structure.focus
+                    + Vector3::new(
+                        normal(rng, spread),
+                        normal(rng, 0.3 * spread),
+                        normal(rng, structure.focus.z * 0.4),
+                    );
+                if !inside_block(&centre) {
+                    shots.push((centre, target));
+                }
+            }
+        }
         Layout::Terrain => {
             let radius = uniform(rng, 40.0, 90.0);
             let altitude = uniform(rng, 45.0, 80.0);
@@ -717,6 +781,70 @@ fn make_cameras(
     (cameras, shots)
 }
 
+/// Image sizes of a photo collection (landscape; a quarter of the photos are portrait).
+const COLLECTION_SIZES: [(u32, u32); 9] = [
+    (640, 480),
+    (800, 600),
+    (1024, 768),
+    (1280, 720),
+    (1600, 1200),
+    (1920, 1080),
+    (2048, 1365),
+    (3000, 2000),
+    (4000, 3000),
+];
+/// Horizontal field of view range of a photo collection (degrees).
+const COLLECTION_FOV_DEG: (f64, f64) = (10.0, 130.0);
+
+/// One camera per photo of a collection: a random size; a zoom that frames the building
+/// from where the photo was taken (telephoto from afar, wide angle close by; a fifth of
+/// the photos zoom at random); a simple radial lens whose barrel or pincushion distortion
+/// at the image corner is weak (|d| <= 1 %) for 60 % of the photos and strong (-25 % to
+/// +8 %) for the others.
+fn make_collection_cameras(
+    rng: &mut Pcg64Mcg,
+    structure: &Structure,
+    centres_and_targets: &[(Vector3<f64>, Vector3<f64>)],
+) -> (BTreeMap<CameraId, Camera>, Vec<Shot>) {
+    let mut cameras = BTreeMap::new();
+    let mut shots = Vec::with_capacity(centres_and_targets.len());
+    let (min_fov, max_fov) = COLLECTION_FOV_DEG;
+    for (i, (centre, target)) in centres_and_targets.iter().enumerate() {
+        let camera_id = i as CameraId + 1;
+        let (mut width, mut height) = COLLECTION_SIZES[rng.random_range(0..COLLECTION_SIZES.len())];
+        if rng.random_bool(0.25) {
+            std::mem::swap(&mut width, &mut height);
+        }
+        let distance = (target - centre).norm();
+        let framed = 2.0 * (structure.extent * uniform(rng, 0.4, 1.5) / distance).atan();
+        let fov_deg = if rng.random_bool(0.2) {
+            log_uniform(rng, min_fov, max_fov)
+        } else {
+            (framed.to_degrees() * uniform(rng, 1.0, 2.5)).clamp(min_fov, max_fov)
+        };
+        let (w, h) = (f64::from(width), f64::from(height));
+        let f = 0.5 * w / (0.5 * fov_deg.to_radians()).tan();
+        let corner_radius = (0.5 * w).hypot(0.5 * h) / f;
+        let corner_distortion = if rng.random_bool(0.6) {
+            uniform(rng, -0.01, 0.01)
+        } else {
+            uniform(rng, -0.25, 0.08)
+        };
+        let k1 = corner_distortion / (corner_radius * corner_radius);
+        let cx = 0.5 * w + normal(rng, 0.01 * w);
+        let cy = 0.5 * h + normal(rng, 0.01 * h);
+        let camera =
+            Camera::from_colmap(CameraModel::SimpleRadial, width, height, &[f, cx, cy, k1])
+                .expect("collection intrinsics are finite with a positive focal length");
+        cameras.insert(camera_id, camera);
+        shots.push(Shot {
+            camera_id,
+            pose: look_at(centre, target, normal(rng, 0.04)),
+        });
+    }
+    (cameras, shots)
+}
+
 fn random_intrinsics(
     rng: &mut Pcg64Mcg,
     model: CameraModel,
@@ -799,6 +927,7 @@ fn observe(
     structure: &Structure,
     points: &[StructurePoint],
     shots: &[Shot],
+    layout: Layout,
 ) {
     let noise_px = uniform(rng, 0.35, 0.9);
     let target_keypoints = uniform(rng, 300.0, 1500.0);
@@ -897,7 +1026,11 @@ fn observe(
             })
             .collect();
         let triangulated = keypoints.iter().filter(|k| k.point3d.is_some()).count();
-        let rate = (mean_outlier_rate + normal(rng, 0.08)).clamp(0.3, 0.7);
+        let rate = if layout == Layout::Collection {
+            collection_outlier_rate(rng, triangulated)
+        } else {
+            (mean_outlier_rate + normal(rng, 0.08)).clamp(0.3, 0.7)
+        };
         let wanted_outliers = (triangulated as f64 * rate / (1.0 - rate)).round() as usize;
         let missing = wanted_outliers.saturating_sub(keypoints.len() - triangulated);
         let texture_share = uniform(rng, 0.3, 0.7);
@@ -935,6 +1068,21 @@ fn observe(
             },
         );
     }
+}
+
+/// Keypoints per photo of a collection: `low (high / low)^(u^2)` for a uniform `u`, a
+/// log-scale skewed towards few (quartiles about 370 / 720 / 2,200, as the real training
+/// scenes' 380 / 530 / 1,040 with a longer tail). A photo's resolution and texture set its
+/// keypoint count, while what gets triangulated depends on the other photos, so the
+/// untriangulated share grows with the count (15-95 %).
+const COLLECTION_KEYPOINTS: (f64, f64) = (300.0, 10_000.0);
+
+/// Outlier rate of a collection photo with `triangulated` keypoints: what fills it up to
+/// its drawn keypoint count.
+fn collection_outlier_rate(rng: &mut Pcg64Mcg, triangulated: usize) -> f64 {
+    let (low, high) = COLLECTION_KEYPOINTS;
+    let keypoints = low * (high / low).powf(rng.random::<f64>().powi(2));
+    (1.0 - triangulated as f64 / keypoints).clamp(0.15, 0.95)
 }
 
 /// Untriangulated detections of texture that the model never reconstructed: random
@@ -1101,5 +1249,33 @@ mod tests {
             );
         }
         assert_ne!(synthetic_scene(11, 0), synthetic_scene(12, 0));
+    }
+
+    #[test]
+    fn collections_mix_zooms_distortions_and_keypoint_counts() {
+        let scene = collection_scene(4, 0);
+        assert_eq!(scene, collection_scene(4, 0));
+        scene.validate().unwrap();
+        assert_eq!(scene.name, "collection/0000");
+        assert_eq!(
+            scene.cameras.len(),
+            scene.images.len(),
+            "one camera per photo"
+        );
+        let fovs: Vec<f64> = scene
+            .cameras
+            .values()
+            .map(|c| 2.0 * (0.5 * f64::from(c.width) / c.focal[0]).atan().to_degrees())
+            .collect();
+        let (min, max) = COLLECTION_FOV_DEG;
+        assert!(fovs.iter().all(|f| (min - 1e-9..=max + 1e-9).contains(f)));
+        assert!(fovs.iter().any(|&f| f < 30.0) && fovs.iter().any(|&f| f > 60.0));
+        let keypoints: Vec<usize> = scene.images.values().map(|i| i.keypoints.len()).collect();
+        assert!(keypoints.iter().any(|&k| k < 600) && keypoints.iter().any(|&k| k > 2000));
+        let error = scene.median_reprojection_error(None, 0).unwrap();
+        assert!(
+            (0.3..=1.2).contains(&error),
+            "median reprojection {error} px"
+        );
     }
 }

@@ -137,6 +137,111 @@ fn model_counts_match_the_data_readme() {
     }
 }
 
+/// The scenes added on 2026-12-01 (`shared/data/README.md`): path, format, images and 3D
+/// points as the README lists them, and the observations (track elements) this project's
+/// readers find, every link checked both ways by `Scene::validate`.
+const ADDED_SCENES: [(&str, &str, usize, usize, usize); 45] = [
+    ("colmap/mamechun", "colmap", 128, 5751, 26268),
+    ("colmap/softmurata", "colmap", 177, 4217, 129186),
+    ("colmap/wesley_cup1", "colmap", 362, 8649, 89054),
+    ("colmap/tensorf_myr", "colmap", 184, 6271, 53859),
+    ("colmap/pratikk_1", "colmap", 92, 2505, 39489),
+    ("colmap/pratikk_2", "colmap", 48, 2009, 18253),
+    ("colmap/pratikk_4", "colmap", 47, 1626, 21094),
+    ("colmap/pratikk_5", "colmap", 38, 1362, 10069),
+    ("colmap/pratikk_6", "colmap", 26, 836, 7869),
+    ("colmap/pratikk_7", "colmap", 14, 769, 6791),
+    ("colmap/pratikk_8", "colmap", 19, 647, 7407),
+    ("colmap/pratikk_9", "colmap", 10, 620, 4557),
+    ("colmap/yowsitian", "colmap", 118, 852, 31139),
+    ("colmap/binbin", "colmap", 101, 6885, 49127),
+    ("colmap/slamdrone_output2_1", "colmap", 72, 2944, 23612),
+    ("colmap/slamdrone_output2_2", "colmap", 90, 3316, 22641),
+    ("colmap/slamdrone_output2_3", "colmap", 20, 602, 2945),
+    ("colmap/slamdrone_output_4", "colmap", 65, 2238, 19668),
+    ("colmap/kwrous", "colmap", 77, 9262, 57847),
+    ("colmap/yhuoyuh", "colmap", 71, 4414, 30839),
+    ("colmap/splatam_up", "colmap", 50, 5255, 55090),
+    ("colmap/considering_d1", "colmap", 44, 2358, 14186),
+    ("colmap/xuzhy", "colmap", 29, 7562, 50334),
+    ("colmap/lofi_a", "colmap", 28, 1404, 5568),
+    ("colmap/carlygp", "colmap", 26, 5561, 25103),
+    ("colmap/bjr_a", "colmap", 25, 1409, 5970),
+    ("colmap/bjr_b", "colmap", 20, 1613, 6131),
+    ("colmap/bjr_c", "colmap", 8, 1483, 5241),
+    ("colmap/bartoszek", "colmap", 23, 1443, 5931),
+    ("colmap/ranjith", "colmap", 13, 3550, 13785),
+    ("colmap/flopau", "colmap", 13, 1609, 10225),
+    ("colmap/bgopen3d", "colmap", 10, 2312, 8025),
+    ("colmap/vijay_final_try", "colmap", 14, 3036, 15987),
+    ("colmap/vijay_ft1", "colmap", 10, 2167, 10461),
+    ("colmap/vijay_boxes1", "colmap", 6, 3154, 11596),
+    ("colmap/avishai", "colmap", 8, 10160, 46434),
+    ("colmap/yding", "colmap", 7, 699, 2616),
+    ("colmap/halogen", "colmap", 5, 2013, 6760),
+    ("colmap/kyumin", "colmap", 5, 2137, 6890),
+    ("colmap/marychris", "colmap", 5, 3592, 12042),
+    ("opensfm/projcv_cc9d27", "opensfm", 26, 3173, 8540),
+    ("opensfm/applebanana", "opensfm", 103, 6570, 23231),
+    ("opensfm/bathtub", "opensfm", 19, 1191, 2980),
+    ("bundler/obscurs_a", "bundler", 150, 3169, 17493),
+    ("bundler/obscurs_b", "bundler", 104, 3133, 14988),
+];
+
+fn added_scene_source(data: &std::path::Path, path: &str, format: &str) -> SceneSource {
+    match format {
+        "colmap" => SceneSource::Colmap(data.join(path)),
+        "opensfm" => SceneSource::OpenSfm(data.join(path)),
+        _ => SceneSource::Bundler(data.join(path).join("bundle.out")),
+    }
+}
+
+/// Loads every added scene of one format: counts as listed, and the stored poses reproject
+/// the observations with a median error under 2 px (the README's figures are 0.27-1.50 px).
+fn check_added_scenes(format: &str) {
+    let Some(data) = shared_data() else { return };
+    let mut mismatches = Vec::new();
+    for (path, _, images, points, observations) in ADDED_SCENES.iter().filter(|s| s.1 == format) {
+        let scene = added_scene_source(&data, path, format).load().unwrap();
+        assert_eq!(scene.name, *path);
+        let error = scene.median_reprojection_error(None, 0).unwrap();
+        let found = (
+            scene.images.len(),
+            scene.points.len(),
+            scene.observation_count(),
+        );
+        println!(
+            "{path}: {} images, {} points, {} observations, median reprojection error {error:.3} px",
+            found.0, found.1, found.2
+        );
+        assert!(error < 2.0, "{path}: median reprojection error {error} px");
+        if found != (*images, *points, *observations) {
+            mismatches.push(format!("{path}: {found:?}"));
+        }
+    }
+    assert!(mismatches.is_empty(), "{mismatches:#?}");
+}
+
+#[test]
+fn added_colmap_scenes_load_with_their_counts() {
+    check_added_scenes("colmap");
+}
+
+#[test]
+fn opensfm_scenes_load_with_their_counts() {
+    check_added_scenes("opensfm");
+}
+
+#[test]
+fn bundler_scenes_with_name_lists_load_with_their_counts() {
+    check_added_scenes("bundler");
+    let Some(data) = shared_data() else { return };
+    let scene = SceneSource::Bundler(data.join("bundler/obscurs_b/bundle.out"))
+        .load()
+        .unwrap();
+    assert_eq!(scene.images[&0].name, "Scan_01-back.png");
+}
+
 #[test]
 fn colmap_text_export_round_trips_a_binary_model() {
     let Some(data) = shared_data() else { return };

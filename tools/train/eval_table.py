@@ -13,7 +13,10 @@ how far the difference could move with other queries of the same scene. With `--
 model over the seeds both hold, with the same interval: the test for shipping a new export. For seed-0
 reports that record `correct`, a last table splits the queries into those localized within 10 px and the
 others, with the medians of their ground-truth merged matches and inliers (matching vs pose failures).
-Standard library only.
+When DIR holds oracle reports (<scene>-oracle.json, written by tools/train/eval_all.sh on the same queries),
+a validation table gives per scene and precision the model's and the oracle's AUC, failures, and the true
+matches among merged matches and inliers (medians over the queries), and per precision the mean over the
+scenes with the mean ratio of model to oracle AUC @5 px. Standard library only.
 
     python3 tools/train/eval_table.py DIR [--baseline OTHER_DIR]
 """
@@ -178,8 +181,48 @@ def baseline_lines(reports: dict, baseline: Path) -> list[str]:
     return lines
 
 
+def aucs(report: dict) -> str:
+    return " / ".join(f"{report[k]:.2f}" for k in AUC_KEYS)
+
+
+def median_correct(report: dict, stage: str) -> str:
+    """Median over the queries of the true matches among a stage's matches, and of the stage's matches."""
+    queries = [q for q in report.get("per_query", []) if q.get("correct") is not None]
+    if not queries:
+        return "-"
+    return f"{median(q['correct'][stage] for q in queries):g} of {median(q['counts'][stage] for q in queries):g}"
+
+
+def validation_table(folder: Path, reports: dict) -> None:
+    """Model against the oracle on the same queries, per scene and precision, and means over the scenes."""
+    oracles = {path.name[: -len("-oracle.json")]: json.loads(path.read_text()) for path in sorted(folder.glob("*-oracle.json"))}
+    rows = [(scene, p, found[0], oracles[scene]) for (scene, p), found in reports.items() if scene in oracles]
+    if not rows:
+        return
+    print()
+    print("| scene | weights | queries | failures (oracle) | AUC @1/5/10 px | oracle AUC @1/5/10 px "
+          "| true merged of merged, median | true inliers of inliers, median |")
+    print("|---|---|---|---|---|---|---|---|")
+    for _, precision, report, oracle in rows:
+        print(f"| {report['scene']} | {precision} | {report['queries']} | {report['failures']} ({oracle['failures']}) "
+              f"| {aucs(report)} | {aucs(oracle)} | {median_correct(report, 'merged')} "
+              f"| {median_correct(report, 'inliers')} |")
+    print()
+    print("| weights | scenes | mean AUC @1/5/10 px | mean oracle AUC @1/5/10 px | mean AUC @5 px / oracle AUC @5 px |")
+    print("|---|---|---|---|---|")
+    for precision in PRECISIONS:
+        chosen = [(r, o) for _, p, r, o in rows if p == precision]
+        if not chosen:
+            continue
+        mean = lambda values: sum(values) / len(values)  # noqa: E731
+        model = " / ".join(f"{mean([r[k] for r, _ in chosen]):.2f}" for k in AUC_KEYS)
+        oracle = " / ".join(f"{mean([o[k] for _, o in chosen]):.2f}" for k in AUC_KEYS)
+        ratio = mean([r["auc_5px"] / o["auc_5px"] if o["auc_5px"] > 0 else 0.0 for r, o in chosen])
+        print(f"| {precision} | {len(chosen)} | {model} | {oracle} | {ratio:.3f} |")
+
+
 def main(folder: Path, baseline: Path | None = None) -> None:
-    scenes = [path.name[: -len("-f32.json")] for path in sorted(folder.glob("*-f32.json"))]
+    scenes = sorted({path.name[: -len(f"-{p}.json")] for p in PRECISIONS for path in folder.glob(f"*-{p}.json")})
     reports = {(scene, p): seed_reports(folder, scene, p) for scene in scenes for p in PRECISIONS}
     reports = {key: found for key, found in reports.items() if found}
     print("| scene | weights | queries | failures | AUC @1/5/10 px | rotation q25/50/75 (deg) "
@@ -190,6 +233,7 @@ def main(folder: Path, baseline: Path | None = None) -> None:
     if any(len(found) > 1 for found in reports.values()):
         seed_tables(scenes, reports)
     true_match_table(reports)
+    validation_table(folder, reports)
     if baseline is not None:
         print()
         print("\n".join(baseline_lines(reports, baseline)))

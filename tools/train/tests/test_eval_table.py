@@ -114,3 +114,18 @@ def test_true_match_table_splits_the_queries_at_10_px(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "| colmap/s | f32 | 2 | 30 (20-40) of 250 | 28.5 of 31.5 | 3 | 3 (1-9) of 150 | 0 of 6 |" in out
     assert "| colmap/s | int8 |" not in out.split("true inliers of inliers")[1]
+
+
+def test_validation_table_sets_the_model_beside_the_oracle(tmp_path, capsys):
+    model = report("opensfm/p", 0, (10.0, 30.0, 40.0))
+    model["per_query"] = [
+        {"image_id": i, "reprojection_px": 1.0, "counts": {"merged": m, "inliers": n}, "correct": {"merged": c, "inliers": t}}
+        for i, (m, n, c, t) in enumerate([(100, 20, 10, 9), (300, 40, 30, 29), (200, 10, 2, 1)])
+    ]  # fmt: skip
+    write(tmp_path, "p-int8.json", model)
+    write(tmp_path, "p-oracle.json", report("opensfm/p", 0, (80.0, 60.0, 90.0)))
+    eval_table.main(tmp_path)
+    out = capsys.readouterr().out
+    assert ("| opensfm/p | int8 | 4 | 0 (0) | 10.00 / 30.00 / 40.00 | 80.00 / 60.00 / 90.00 | 10 of 200 | 9 of 20 |"
+            in out)  # fmt: skip
+    assert "| int8 | 1 | 10.00 / 30.00 / 40.00 | 80.00 / 60.00 / 90.00 | 0.500 |" in out
