@@ -16,6 +16,7 @@ pub mod parse;
 pub mod protocol;
 pub mod scene;
 pub mod synthetic;
+pub mod tiny;
 
 pub mod pnp;
 
@@ -25,4 +26,5 @@ pub mod demo;
 pub mod eval;
 
 pub mod device;
+pub mod faulty_link;
 pub mod firmware_data;
