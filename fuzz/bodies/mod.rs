@@ -18,6 +18,9 @@ use gomatch_sim::scene::Scene;
 /// Keypoint capacity of the localizer under test.
 pub const CAPACITY: usize = 64;
 const RX: usize = link::rx_frame_len(CAPACITY);
+/// RANSAC samples per localization: few, so that an execution stays short (random
+/// weights give no good matches, and the default 10,000 samples would dominate).
+const RANSAC_ITERATIONS: u32 = 64;
 /// Ids of the requests sent after the noise in [`device_link`].
 const PROBE_IDS: [u32; 3] = [0xF00D_0001, 0xF00D_0002, 0xF00D_0003];
 
@@ -147,6 +150,7 @@ fn serve(fixture: &Fixture, input: Vec<u8>) -> Vec<Response> {
     let mut device = Box::new(Device::<CAPACITY, RX>::new());
     let mut service =
         Service::new(&mut localizer, &fixture.model, &fixture.map, NoPin).expect("valid blobs");
+    service.config.ransac.max_iterations = RANSAC_ITERATIONS;
     let mut pipe = Pipe {
         input,
         at: 0,
@@ -183,7 +187,8 @@ fn forward(model: &Model<'_>, map: &Map<'_>, camera: Camera, pixels: &[[f32; 2]]
         keypoints: pixels,
         camera,
     };
-    let config = LocalizerConfig::new();
+    let mut config = LocalizerConfig::new();
+    config.ransac.max_iterations = RANSAC_ITERATIONS;
     let prior = Pose::new(
         nalgebra::Rotation3::identity(),
         nalgebra::Vector3::new(-0.05, 0.0, 0.0),
@@ -436,7 +441,13 @@ pub fn localize(data: &[u8]) {
     config.min_inliers = usize::from(bytes.u8());
     let selector = bytes.u8();
     let ids: Vec<u32> = (0..selector % 13)
-        .map(|i| if bytes.u8() % 2 == 0 { [10, 20][i as usize % 2] } else { u32::from(bytes.u16()) })
+        .map(|i| {
+            if bytes.u8() % 2 == 0 {
+                [10, 20][i as usize % 2]
+            } else {
+                u32::from(bytes.u16())
+            }
+        })
         .collect();
     let rotation: [f64; 9] = std::array::from_fn(|_| bytes.f64());
     let translation: [f64; 3] = std::array::from_fn(|_| bytes.f64());
