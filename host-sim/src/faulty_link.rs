@@ -231,11 +231,7 @@ impl embedded_io::Read for FaultyDeviceEnd {
         while line.to_device.is_empty() && !line.host_closed && !buf.is_empty() {
             line.device_waiting = true;
             self.0.changed.notify_all();
-            line = self
-                .0
-                .changed
-                .wait(line)
-                .unwrap_or_else(|e| e.into_inner());
+            line = self.0.changed.wait(line).unwrap_or_else(|e| e.into_inner());
         }
         line.device_waiting = false;
         let available = buf.len().min(line.to_device.len()).min(MAX_READ);

@@ -130,7 +130,12 @@ fn colmap_bin(scene: &Scene) -> [Vec<u8>; 3] {
 
 /// A BAL problem and a Bundler file of two cameras looking down -z at four points.
 fn bal_and_bundler() -> (String, String) {
-    let points = [[0.0, 0.0, -5.0], [1.0, 0.0, -5.0], [0.0, 1.0, -6.0], [1.0, 1.0, -4.0]];
+    let points = [
+        [0.0, 0.0, -5.0],
+        [1.0, 0.0, -5.0],
+        [0.0, 1.0, -6.0],
+        [1.0, 1.0, -4.0],
+    ];
     let mut bal = format!("2 {} {}\n", points.len(), 2 * points.len());
     let mut bundler = format!("# Bundle file v0.3\n2 {}\n", points.len());
     let shifts = [-0.2, 0.2];
@@ -177,7 +182,9 @@ fn localize_input(model: u8, params: &[f64], selector: u8, pixels: &[[f32; 2]]) 
     out.extend([4, 4]);
     out.push(selector);
     out.extend(std::iter::repeat_n(0u8, usize::from(selector % 13)));
-    for v in [1.0f64, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.05, 0.0, 0.0] {
+    for v in [
+        1.0f64, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.05, 0.0, 0.0,
+    ] {
         out.extend(v.to_le_bytes());
     }
     if selector & 0x80 != 0 {
@@ -217,8 +224,16 @@ fn seeds() -> Vec<(&'static str, &'static str, Vec<u8>)> {
     let opencv = [500.0, 510.0, 320.0, 240.0, -0.1, 0.01, 1e-3, -1e-3];
     vec![
         ("model_blob", "tiny-f32", with_mode(0, &model)),
-        ("model_blob", "tiny-f32-fixed-preamble-crc", with_mode(3, &model)),
-        ("model_blob", "tiny-f32-cut", with_mode(2, &model[..model.len() / 2])),
+        (
+            "model_blob",
+            "tiny-f32-fixed-preamble-crc",
+            with_mode(3, &model),
+        ),
+        (
+            "model_blob",
+            "tiny-f32-cut",
+            with_mode(2, &model[..model.len() / 2]),
+        ),
         ("map_blob", "tiny", with_mode(0, &map)),
         ("map_blob", "tiny-fixed-header", with_mode(7, &map)),
         ("map_blob", "tiny-cut", with_mode(6, &map[..map.len() / 2])),

@@ -151,9 +151,16 @@ fn soak_and_check(config: &SoakConfig) -> SoakReport {
     assert_eq!(report.gave_up, 0, "requests given up");
     assert_eq!(report.correct, requests);
     assert_eq!(stats.requests, requests);
-    assert_eq!(stats.attempts, requests + stats.timeouts, "every timeout retried");
+    assert_eq!(
+        stats.attempts,
+        requests + stats.timeouts,
+        "every timeout retried"
+    );
     let faults = report.faults_to_device.total() + report.faults_to_host.total();
-    assert!(stats.timeouts <= faults, "a loss without a fault: {stats:?}");
+    assert!(
+        stats.timeouts <= faults,
+        "a loss without a fault: {stats:?}"
+    );
     report
 }
 
