@@ -226,10 +226,11 @@ pub struct RetryPolicy {
 }
 
 impl Default for RetryPolicy {
-    /// 30 s (a `Localizer<1024>` query takes about 1 s on the host), 3 attempts.
+    /// 120 s (a `Localizer<1024>` query takes about 1 s on an idle host, many times that
+    /// on a loaded one), 3 attempts.
     fn default() -> Self {
         RetryPolicy {
-            timeout: Duration::from_secs(30),
+            timeout: Duration::from_secs(120),
             attempts: 3,
         }
     }
