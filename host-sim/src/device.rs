@@ -162,11 +162,129 @@ impl embedded_hal::digital::OutputPin for &BusyLine {
     }
 }
 
-/// The host end of the link: sends requests, reads reply frames.
-pub struct HostLink<IO> {
-    io: IO,
+/// What a host read from the link within its timeout.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Received {
+    /// This many bytes arrived.
+    Bytes(usize),
+    /// Nothing arrived in time.
+    TimedOut,
+    /// The device end is gone.
+    Closed,
+}
+
+/// The byte stream as a host sees it: writes, and reads that give up after a timeout.
+pub trait Transport {
+    /// Writes all of `bytes`.
+    fn send(&mut self, bytes: &[u8]) -> anyhow::Result<()>;
+    /// Reads what arrives into `buf`, waiting at most `timeout` for the first byte.
+    fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> anyhow::Result<Received>;
+}
+
+impl Transport for PipeEnd {
+    fn send(&mut self, bytes: &[u8]) -> anyhow::Result<()> {
+        let Ok(()) = embedded_io::Write::write_all(self, bytes);
+        Ok(())
+    }
+
+    fn receive(&mut self, buf: &mut [u8], timeout: Duration) -> anyhow::Result<Received> {
+        let state = self
+            .incoming
+            .state
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        let (mut state, _) = self
+            .incoming
+            .ready
+            .wait_timeout_while(state, timeout, |(bytes, closed)| {
+                bytes.is_empty() && !*closed
+            })
+            .unwrap_or_else(|e| e.into_inner());
+        if state.0.is_empty() {
+            return Ok(if state.1 {
+                Received::Closed
+            } else {
+                Received::TimedOut
+            });
+        }
+        let n = buf.len().min(state.0.len());
+        for (slot, byte) in buf.iter_mut().zip(state.0.drain(..n)) {
+            *slot = byte;
+        }
+        Ok(Received::Bytes(n))
+    }
+}
+
+/// How long a host waits for a reply, and how often it sends a request.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RetryPolicy {
+    /// Longest wait for the reply to one attempt (longer than the device's slowest
+    /// localization).
+    pub timeout: Duration,
+    /// Attempts per request, the first included.
+    pub attempts: u32,
+}
+
+impl Default for RetryPolicy {
+    /// 120 s (a `Localizer<1024>` query takes about 1 s on an idle host, many times that
+    /// on a loaded one), 3 attempts.
+    fn default() -> Self {
+        RetryPolicy {
+            timeout: Duration::from_secs(120),
+            attempts: 3,
+        }
+    }
+}
+
+/// What the host saw on the link, over all requests.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct LinkStats {
+    /// Requests asked.
+    pub requests: u64,
+    /// Request frames sent (requests plus retries).
+    pub attempts: u64,
+    /// Attempts that got no valid reply in time (each one retried or reported).
+    pub timeouts: u64,
+    /// Reply frames that failed their checksum or did not decode.
+    pub corrupt_replies: u64,
+    /// Error replies without an id: the device got a broken frame.
+    pub device_errors: u64,
+    /// Valid replies to an earlier request (a duplicate or a late answer), dropped.
+    pub stale_replies: u64,
+}
+
+/// Why a request got no reply.
+#[derive(Debug, thiserror::Error)]
+pub enum RequestError {
+    /// Every attempt timed out.
+    #[error("request {id}: no valid reply after {attempts} attempts")]
+    NoReply {
+        /// The request's id.
+        id: u32,
+        /// Attempts made.
+        attempts: u32,
+    },
+    /// The request does not fit a frame.
+    #[error("request larger than the device's frame")]
+    TooLarge,
+    /// The device end closed.
+    #[error("the device closed the link")]
+    Closed,
+    /// The transport failed.
+    #[error("link transport: {0}")]
+    Transport(anyhow::Error),
+}
+
+/// The host end of the link: sends each request with a fresh id, accepts only a reply
+/// frame whose checksum holds and whose id is the request's, and sends the request again
+/// when none arrived within the timeout. A reply is never matched to the wrong request
+/// and no call blocks longer than `attempts * timeout`.
+pub struct HostLink<T> {
+    transport: T,
+    policy: RetryPolicy,
     next_id: u32,
     pending: Vec<u8>,
+    stats: LinkStats,
 }
 
 /// A reply and what came before it.
@@ -178,78 +296,117 @@ pub struct Exchange {
     pub refused: Vec<LinkError>,
     /// Bytes of the request frame.
     pub request_bytes: usize,
-    /// Send to reply.
+    /// Attempts it took (1 without a loss).
+    pub attempts: u32,
+    /// First send to reply.
     pub round_trip: Duration,
 }
 
-impl<IO: embedded_io::Read + embedded_io::Write> HostLink<IO> {
-    /// A host on `io`; request ids start at 1.
-    pub fn new(io: IO) -> Self {
+impl<T: Transport> HostLink<T> {
+    /// A host on `transport`; request ids start at 1.
+    pub fn new(transport: T, policy: RetryPolicy) -> Self {
         Self {
-            io,
+            transport,
+            policy,
             next_id: 1,
             pending: Vec::new(),
+            stats: LinkStats::default(),
         }
+    }
+
+    /// What the host saw so far.
+    pub fn stats(&self) -> LinkStats {
+        self.stats
+    }
+
+    /// The transport under the link.
+    pub fn transport(&self) -> &T {
+        &self.transport
     }
 
     /// Writes raw bytes (e.g. line noise).
     pub fn send_raw(&mut self, bytes: &[u8]) -> anyhow::Result<()> {
-        self.io
-            .write_all(bytes)
-            .map_err(|e| anyhow::anyhow!("writing: {e:?}"))
+        self.transport.send(bytes)
     }
 
     /// Sends `[0]` (closing any broken frame before it) and the request's frame, then
-    /// reads replies until the one with the request's id.
-    pub fn request(&mut self, body: RequestBody<'_>) -> anyhow::Result<Exchange> {
+    /// reads replies until the one with the request's id; sends again after a timeout,
+    /// up to the policy's attempts.
+    pub fn request(&mut self, body: RequestBody<'_>) -> Result<Exchange, RequestError> {
         let id = self.next_id;
         self.next_id = self.next_id.wrapping_add(1);
+        self.stats.requests += 1;
         let request = Request { id, body };
         let mut frame = vec![0u8; 1 + link::rx_frame_len(CAPACITY) + 1];
         let len = link::encode_frame(&request, &mut frame[1..])
-            .context("request larger than the device's frame")?
+            .ok_or(RequestError::TooLarge)?
             .len();
         frame.truncate(1 + len);
         let start = Instant::now();
-        self.send_raw(&frame)?;
         let mut refused = Vec::new();
-        loop {
-            let response = self.read_response()?;
-            match (response.id, &response.body) {
-                (Some(got), _) if got == id => {
-                    return Ok(Exchange {
-                        response,
-                        refused,
-                        request_bytes: frame.len(),
-                        round_trip: start.elapsed(),
-                    })
-                }
-                (None, ResponseBody::Error(error)) => refused.push(error.clone()),
-                _ => bail!("unexpected reply {response:?} while waiting for request {id}"),
+        for attempt in 1..=self.policy.attempts {
+            self.stats.attempts += 1;
+            self.transport
+                .send(&frame)
+                .map_err(RequestError::Transport)?;
+            if let Some(response) = self.await_reply(id, &mut refused)? {
+                return Ok(Exchange {
+                    response,
+                    refused,
+                    request_bytes: frame.len(),
+                    attempts: attempt,
+                    round_trip: start.elapsed(),
+                });
             }
+            self.stats.timeouts += 1;
         }
+        Err(RequestError::NoReply {
+            id,
+            attempts: self.policy.attempts,
+        })
     }
 
-    /// Reads one reply frame.
-    fn read_response(&mut self) -> anyhow::Result<Response> {
+    /// Reads reply frames until the one of request `id` (`None` after the timeout, when
+    /// the bytes of a partial frame are dropped).
+    fn await_reply(
+        &mut self,
+        id: u32,
+        refused: &mut Vec<LinkError>,
+    ) -> Result<Option<Response>, RequestError> {
+        let deadline = Instant::now() + self.policy.timeout;
         loop {
-            if let Some(end) = self.pending.iter().position(|&b| b == 0) {
+            while let Some(end) = self.pending.iter().position(|&b| b == 0) {
                 let mut frame: Vec<u8> = self.pending.drain(..=end).collect();
                 if end == 0 {
                     continue;
                 }
-                return link::decode_frame::<Response>(&mut frame)
-                    .map_err(|e| anyhow::anyhow!("undecodable reply frame: {e:?}"));
+                match link::decode_frame::<Response>(&mut frame) {
+                    Ok(response) if response.id == Some(id) => return Ok(Some(response)),
+                    Ok(Response {
+                        id: None,
+                        body: ResponseBody::Error(error),
+                    }) => {
+                        self.stats.device_errors += 1;
+                        refused.push(error);
+                    }
+                    Ok(_) => self.stats.stale_replies += 1,
+                    Err(_) => self.stats.corrupt_replies += 1,
+                }
             }
+            let left = deadline.saturating_duration_since(Instant::now());
             let mut chunk = [0u8; 256];
-            let n = self
-                .io
-                .read(&mut chunk)
-                .map_err(|e| anyhow::anyhow!("reading: {e:?}"))?;
-            if n == 0 {
-                bail!("the device closed the link");
+            match self
+                .transport
+                .receive(&mut chunk, left)
+                .map_err(RequestError::Transport)?
+            {
+                Received::Bytes(n) => self.pending.extend_from_slice(&chunk[..n]),
+                Received::TimedOut => {
+                    self.pending.clear();
+                    return Ok(None);
+                }
+                Received::Closed => return Err(RequestError::Closed),
             }
-            self.pending.extend_from_slice(&chunk[..n]);
         }
     }
 }
@@ -341,7 +498,7 @@ pub fn run_session(
             let served = device.serve_until_closed(&mut device_end, &mut service);
             served.map_err(|e| anyhow::anyhow!("device link: {e:?}"))
         });
-        let mut host = HostLink::new(host_end);
+        let mut host = HostLink::new(host_end, RetryPolicy::default());
         let session = host_session(&mut host, noise, queries);
         drop(host);
         let device = device

@@ -20,6 +20,7 @@ pub mod protocol;
 pub mod scene;
 pub mod scenes_stats;
 pub mod synthetic;
+pub mod tiny;
 
 pub mod pnp;
 
@@ -30,4 +31,5 @@ pub mod eval;
 pub mod fit;
 
 pub mod device;
+pub mod faulty_link;
 pub mod firmware_data;

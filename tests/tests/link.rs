@@ -1,8 +1,10 @@
 //! The device link end to end: `gomatch-sim device`'s device thread serves the synthetic
 //! scene's queries over an in-process pipe, after line noise, and every reply equals a
-//! direct `localize` call; `firmware-data` regenerates the firmware image's committed
-//! files byte for byte. Localization needs the reference fixture weights (SKIPPED
-//! without `shared/`).
+//! direct `localize` call; the retrying host over a line that drops, flips, duplicates and
+//! truncates bytes accepts only correct replies and never hangs (a soak; the 100,000
+//! request run is ignored by default); `firmware-data` regenerates the firmware image's
+//! committed files byte for byte. Localization on the synthetic scene needs the reference
+//! fixture weights (SKIPPED without `shared/`).
 
 use std::path::Path;
 
@@ -11,6 +13,7 @@ use gomatch::weights::Precision;
 use gomatch::{Localizer, Map, Model};
 use gomatch_sim::device::{run_session, LinkQuery};
 use gomatch_sim::eval::{protocol_samples, CAPACITY};
+use gomatch_sim::faulty_link::{print_report, soak, SoakConfig, SoakReport};
 use gomatch_sim::firmware_data::{firmware_data, FIRMWARE_CAPACITY, FIRMWARE_SEED};
 use gomatch_sim::map::build_map;
 use gomatch_sim::protocol::ProtocolParams;
@@ -133,4 +136,78 @@ fn firmware_data_regenerates_the_committed_files() {
     assert_eq!(n, data.sample.keypoints.len());
     assert_eq!(localize.camera, data.sample.camera);
     assert_eq!(data.truth.len(), 13 * 8);
+}
+
+/// Runs a soak and checks what the link guarantees: every accepted reply equals the
+/// direct call, every request is answered, every lost or corrupted exchange was detected
+/// (a timeout) and retried, and a loss happens only where the line applied a fault.
+fn soak_and_check(config: &SoakConfig) -> SoakReport {
+    let start = std::time::Instant::now();
+    let report = soak(config).expect("the soak finishes (no hang)");
+    print_report(config, &report, start.elapsed().as_secs_f64());
+    let stats = report.stats;
+    let requests = config.requests as u64;
+    assert_eq!(report.wrong, 0, "wrong replies accepted");
+    assert_eq!(report.gave_up, 0, "requests given up");
+    assert_eq!(report.correct, requests);
+    assert_eq!(stats.requests, requests);
+    assert_eq!(
+        stats.attempts,
+        requests + stats.timeouts,
+        "every timeout retried"
+    );
+    let faults = report.faults_to_device.total() + report.faults_to_host.total();
+    assert!(
+        stats.timeouts <= faults,
+        "a loss without a fault: {stats:?}"
+    );
+    report
+}
+
+/// 3,000 requests (1 in 20 a localization), one write in ten corrupted per direction.
+#[test]
+fn faulty_line_accepts_only_correct_replies() {
+    let report = soak_and_check(&SoakConfig {
+        requests: 3000,
+        localize_every: 20,
+        fault_rate: 0.1,
+        seed: 1,
+        attempts: 16,
+    });
+    let faults = report.faults_to_device.total() + report.faults_to_host.total();
+    assert!(faults > 300, "{report:?}");
+    assert!(report.faults_to_device.0.iter().all(|&n| n > 0));
+    assert!(report.faults_to_host.0.iter().all(|&n| n > 0));
+    assert!(report.stats.timeouts > 0 && report.stats.corrupt_replies > 0);
+    assert!(report.stats.device_errors > 0 && report.stats.stale_replies > 0);
+}
+
+/// On a clean line nothing is lost or retried.
+#[test]
+fn clean_line_needs_no_retry() {
+    let report = soak_and_check(&SoakConfig {
+        requests: 500,
+        localize_every: 10,
+        fault_rate: 0.0,
+        seed: 1,
+        attempts: 1,
+    });
+    assert_eq!(report.stats.attempts, 500);
+    assert_eq!(report.stats.timeouts, 0);
+    assert_eq!(report.stats.corrupt_replies + report.stats.device_errors, 0);
+}
+
+/// The full soak: 100,000 requests (1 in 20 a localization), one write in ten corrupted
+/// per direction. `cargo test --release -p gomatch-integration --test link -- --ignored
+/// --nocapture soak_100k`.
+#[test]
+#[ignore = "the full soak takes minutes"]
+fn soak_100k() {
+    soak_and_check(&SoakConfig {
+        requests: 100_000,
+        localize_every: 20,
+        fault_rate: 0.1,
+        seed: 2026,
+        attempts: 16,
+    });
 }

@@ -1,0 +1,135 @@
+//! A tiny deterministic scene, map, model and query, built through the public API, for
+//! tests that run many localizations (the link soak, the fuzz targets): 80 points seen by
+//! two views of one pinhole camera, a model with `d = 8` and random weights.
+
+use gomatch::weights::{tensor_spec, ModelConfig, Precision};
+use gomatch::Camera;
+use gomatch_tools::convert::{write_blob, FloatLinear, Options};
+
+use crate::colmap::{parse_cameras_txt, parse_images_txt, parse_points_txt};
+use crate::map::build_map;
+use crate::scene::Scene;
+
+/// A model configuration with `d = 8`, one block each, 2 heads, `k = 3`.
+pub const TINY_CONFIG: ModelConfig = ModelConfig {
+    feature_dim: 8,
+    encoder_blocks: 1,
+    classifier_dim: 8,
+    classifier_blocks: 1,
+    heads: 2,
+    knn: 3,
+    sinkhorn_iters: 20,
+    sinkhorn_eps: 0.1,
+    sinkhorn_stop: 1e-6,
+    match_threshold: 0.5,
+    bin_score: 1.0,
+};
+
+/// Image ids of the two views.
+pub const TINY_VIEWS: [u32; 2] = [10, 20];
+/// Focal length and principal point of the camera (640 x 480 pixels).
+const FOCAL: f64 = 500.0;
+const CENTRE: [f64; 2] = [320.0, 240.0];
+const POINTS: usize = 80;
+
+/// A [`TINY_CONFIG`] blob in f32 with weights in [-0.5, 0.5) drawn from `seed`.
+pub fn tiny_model_blob(seed: u32) -> anyhow::Result<Vec<u8>> {
+    let mut state = seed;
+    let mut next = move || {
+        state = state.wrapping_mul(747_796_405).wrapping_add(2_891_336_453);
+        (state >> 8) as f32 / (1u32 << 24) as f32 - 0.5
+    };
+    let tensors: Vec<FloatLinear> = (0..)
+        .map_while(|i| tensor_spec(&TINY_CONFIG, i))
+        .map(|spec| FloatLinear {
+            rows: spec.rows,
+            cols: spec.cols,
+            weights: (0..spec.rows * spec.cols).map(|_| next()).collect(),
+            bias: (0..if spec.bias { spec.rows } else { 0 })
+                .map(|_| next())
+                .collect(),
+        })
+        .collect();
+    write_blob(&TINY_CONFIG, &Options::new(Precision::F32), &tensors)
+}
+
+/// The 3D points: a wavy 10 x 8 grid about 5 units in front of the views.
+fn points() -> Vec<[f64; 3]> {
+    (0..POINTS)
+        .map(|i| {
+            let (u, v) = ((i % 10) as f64 * 0.3 - 1.35, (i / 10) as f64 * 0.3 - 1.05);
+            [u, v, 5.0 + 0.3 * (3.0 * u + 2.0 * v).sin()]
+        })
+        .collect()
+}
+
+/// The pixel of `p` seen by an unrotated camera at `x` on the x axis.
+fn project(p: &[f64; 3], x: f64) -> [f64; 2] {
+    [
+        FOCAL * (p[0] - x) / p[2] + CENTRE[0],
+        FOCAL * p[1] / p[2] + CENTRE[1],
+    ]
+}
+
+/// The scene as COLMAP text files: `cameras.txt`, `images.txt`, `points3D.txt`.
+pub fn tiny_scene_txt() -> [String; 3] {
+    let [cx, cy] = CENTRE;
+    let cameras = format!("1 SIMPLE_PINHOLE 640 480 {FOCAL} {cx} {cy}\n");
+    let points = points();
+    let mut images = String::new();
+    for (image_id, x) in TINY_VIEWS.iter().zip([-0.3, 0.3]) {
+        // World-to-camera translation of a camera centred at (x, 0, 0).
+        images += &format!("{image_id} 1 0 0 0 {} 0 0 1 view{image_id}.jpg\n", -x);
+        for (id, p) in points.iter().enumerate() {
+            let [u, v] = project(p, x);
+            images += &format!("{u} {v} {id} ");
+        }
+        images += "\n";
+    }
+    let mut points3d = String::new();
+    for (id, [x, y, z]) in points.iter().enumerate() {
+        points3d += &format!(
+            "{id} {x} {y} {z} 128 128 128 0.5 {} {id} {} {id}\n",
+            TINY_VIEWS[0], TINY_VIEWS[1]
+        );
+    }
+    [cameras, images, points3d]
+}
+
+/// The scene of [`tiny_scene_txt`], read by the COLMAP text readers.
+pub fn tiny_scene() -> anyhow::Result<Scene> {
+    let [cameras, images, points] = tiny_scene_txt();
+    Ok(Scene {
+        name: "tiny".into(),
+        cameras: parse_cameras_txt(&cameras)?,
+        images: parse_images_txt(&images)?,
+        points: parse_points_txt(&points)?,
+    })
+}
+
+/// The map blob of [`tiny_scene`].
+pub fn tiny_map_blob() -> anyhow::Result<Vec<u8>> {
+    build_map(&tiny_scene()?)
+}
+
+/// The camera of the scene.
+pub fn tiny_camera() -> anyhow::Result<Camera> {
+    let [cx, cy] = CENTRE;
+    Camera::from_colmap(
+        gomatch::camera::CameraModel::SimplePinhole,
+        640,
+        480,
+        &[FOCAL, cx, cy],
+    )
+    .map_err(|e| anyhow::anyhow!("tiny camera: {e}"))
+}
+
+/// Pixels of the first `count` points seen from `x` on the x axis (between the views
+/// for `x` in `-0.3..0.3`).
+pub fn tiny_query(x: f64, count: usize) -> Vec<[f32; 2]> {
+    points()
+        .iter()
+        .take(count)
+        .map(|p| project(p, x).map(|c| c as f32))
+        .collect()
+}
