@@ -18,10 +18,11 @@ pub fn mul_add(a: f32, b: f32, c: f32) -> f32 {
     unsafe { _mm_cvtss_f32(_mm_fmadd_ss(_mm_set_ss(a), _mm_set_ss(b), _mm_set_ss(c))) }
 }
 
-/// `a * b + c`, rounded once: `vfma.f32` of the Cortex-M FPU (FPv4-SP of the Cortex-M4F,
-/// FPv5 of the Cortex-M7), enabled by the core's `arm-fma` feature. Stable Rust cannot test
-/// `target_feature = "vfp4"`, so the feature is the switch; build only for a hard-float
-/// target (`thumbv7em-none-eabihf`) with it.
+/// `a * b + c`, rounded once: `vfma.f32` of the Cortex-M7's FPv5 FPU, enabled by the core's
+/// `arm-fma` feature. Stable Rust cannot test `target_feature = "vfp4"`, so the feature is
+/// the switch. It needs `thumbv7em-none-eabihf` with `-C target-cpu=cortex-m7`: Rust's
+/// `sreg` operands require the double-precision `vfp2` feature, which a Cortex-M4F
+/// (single-precision FPv4, which has the instruction too) lacks, so those builds use libm.
 #[cfg(all(feature = "arm-fma", target_arch = "arm"))]
 #[inline(always)]
 #[allow(unsafe_code)]
