@@ -4,7 +4,8 @@
 //! link's [`Device`] loop exactly as a device on a UART would, decodes its own reply and
 //! exits with a status that says how it went ([`exit_code`]).
 //!
-//! Workspace and link buffers are `static`s: `Localizer<256, f16>` and `Device<256, _>`.
+//! Workspace and link buffers are `static`s: `Localizer<CAPACITY, f16>` and
+//! `Device<CAPACITY, _>` (`CAPACITY` 256, 1024 on AArch64).
 //!
 //! One image, three boards; each board module provides the entry point, `print`, `exit`
 //! and an instruction counter:
