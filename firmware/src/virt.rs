@@ -104,6 +104,8 @@ impl gomatch::Clock for TimerCounter {
 extern "C" fn start() -> ! {
     let q16 = calibrate();
     INSTRUCTIONS_PER_TICK_Q16.store(q16, Ordering::Relaxed);
-    crate::print(format_args!("generic timer: {q16}/65536 instructions per tick"));
+    crate::print(format_args!(
+        "generic timer: {q16}/65536 instructions per tick"
+    ));
     exit(firmware_main(Some(&TimerCounter)))
 }
