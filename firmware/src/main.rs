@@ -4,26 +4,46 @@
 //! link's [`Device`] loop exactly as a device on a UART would, decodes its own reply and
 //! exits with a status that says how it went ([`exit_code`]).
 //!
-//! Workspace and link buffers are `static`s in `.bss` (zeroed by the loader, nothing in
-//! flash): `Localizer<256, f16>` and `Device<256, _>`.
+//! Workspace and link buffers are `static`s: `Localizer<CAPACITY, f16>` and
+//! `Device<CAPACITY, _>` (`CAPACITY` 256, 1024 on AArch64).
 //!
-//! On x86_64 Linux it is linked without the C start files; [`_start`] aligns the stack
-//! and calls [`firmware_main`], which leaves through the `exit` system call. On a
-//! microcontroller, replace `_start` and [`exit`] by the board's entry point (e.g.
-//! `cortex_m_rt::entry`) and its way of reporting a result (see README.md, "Building for a Cortex-M or RISC-V target").
+//! One image, three boards; each board module provides the entry point, `print`, `exit`
+//! and an instruction counter:
+//! - x86_64 Linux ([`board`] = `linux.rs`): linked without the C start files, `_start`
+//!   aligns the stack, `exit` is the system call; no counter.
+//! - Cortex-M7 on QEMU's `mps2-an500` (`mps2.rs`): cortex-m-rt, the workspace in the
+//!   board's PSRAM, semihosting for output and exit status, SysTick counts instructions.
+//! - AArch64 on QEMU's `virt` (`virt.rs`): own start-up code, semihosting, the generic
+//!   timer counts instructions.
 #![no_std]
 #![no_main]
 
+mod fma_check;
+#[cfg(target_arch = "x86_64")]
 mod mem;
+#[cfg(any(target_arch = "arm", target_arch = "aarch64"))]
+mod semihosting;
 
+#[cfg_attr(target_arch = "x86_64", path = "linux.rs")]
+#[cfg_attr(target_arch = "arm", path = "mps2.rs")]
+#[cfg_attr(target_arch = "aarch64", path = "virt.rs")]
+mod board;
+
+use core::fmt::Write as _;
 use core::ptr::addr_of_mut;
 
 use gomatch::link::{self, Device, LinkError, NoPin, Response, ResponseBody, Served, Service};
-use gomatch::{Failure, Localizer, Map, Model, Pose};
+use gomatch::localizer::StageTimings;
+use gomatch::{Clock, Failure, Localizer, Map, Model, Pose};
 use half::f16;
 
-/// Keypoints per query and points per view.
+/// Keypoints per query and points per view: 256 on the microcontroller boards (a 1 MiB
+/// workspace).
+#[cfg(not(target_arch = "aarch64"))]
 const CAPACITY: usize = 256;
+/// Keypoints per query and points per view: the paper's 1024 on AArch64.
+#[cfg(target_arch = "aarch64")]
+const CAPACITY: usize = 1024;
 /// Receive buffer of the link: the longest request frame for [`CAPACITY`].
 const RX: usize = link::rx_frame_len(CAPACITY);
 /// A pose is right when its rotation is within this many degrees of the truth...
@@ -42,7 +62,10 @@ static QUERY: &[u8] = include_bytes!("../data/query.frame");
 /// True pose (row-major rotation, translation) and scene scale, 13 little-endian `f64`.
 static TRUTH: &[u8] = include_bytes!("../data/truth.bin");
 
-/// The localizer workspace, 1 MiB, in `.bss`.
+/// The localizer workspace, 1 MiB: in `.bss`, or on the Cortex-M board in its PSRAM
+/// (`.psram`, not loaded and not zeroed by the start-up code: [`firmware_main`]
+/// initialises it).
+#[cfg_attr(target_arch = "arm", link_section = ".psram")]
 static mut LOCALIZER: Localizer<CAPACITY, f16> = Localizer::new();
 /// The link's receive, keypoint and reply buffers, in `.bss`.
 static mut DEVICE: Device<CAPACITY, RX> = Device::new();
@@ -66,6 +89,8 @@ pub mod exit_code {
     pub const DATA_INVALID: i32 = 12;
     /// The localizer refused the query's content (capacity, camera, view ids).
     pub const QUERY_REJECTED: i32 = 13;
+    /// The build's `mul_add` differs from `libm::fmaf` ([`crate::fma_check`]).
+    pub const FMA_MISMATCH: i32 = 14;
     /// A panic (none is expected: the core reports every bad input as a value).
     pub const PANIC: i32 = 101;
 }
@@ -126,90 +151,184 @@ fn truth() -> Option<(Pose, f64)> {
     Some((pose, values[12]))
 }
 
-/// Serves the embedded request and grades the reply.
+/// Serves the embedded request and grades the reply: the exit status, and the stage
+/// timings of the reply when a clock was given.
 fn run(
     localizer: &'static mut Localizer<CAPACITY, f16>,
     device: &'static mut Device<CAPACITY, RX>,
-) -> i32 {
-    if Model::from_bytes(MODEL).is_err() {
-        return exit_code::MODEL_INVALID;
-    }
-    if Map::from_bytes(MAP).is_err() {
-        return exit_code::MAP_INVALID;
-    }
+    clock: Option<&dyn Clock>,
+) -> (i32, Option<StageTimings>) {
     let Some((truth, scale)) = truth() else {
-        return exit_code::DATA_INVALID;
-    };
-    let Ok(mut service) = Service::new(localizer, MODEL, MAP, NoPin) else {
-        return exit_code::MODEL_INVALID;
+        return (exit_code::DATA_INVALID, None);
     };
     let mut io = Loopback {
         at: 0,
         reply: [0; link::TX_FRAME_LEN],
         reply_len: 0,
     };
-    match device.serve(&mut io, &mut service) {
-        Ok(Served::Answered { id: 1 }) => {}
-        _ => return exit_code::DATA_INVALID,
+    if let Err(code) = serve(localizer, device, clock, &mut io) {
+        return (code, None);
     }
     let Ok(response) = link::decode_frame::<Response>(&mut io.reply[..io.reply_len]) else {
-        return exit_code::DATA_INVALID;
+        return (exit_code::DATA_INVALID, None);
     };
     match response.body {
-        ResponseBody::Localized(reply) => match reply.outcome.map(|p| p.to_pose()) {
-            Ok(Ok(pose)) => {
-                let right = pose.rotation_error_deg(&truth) <= MAX_ROTATION_DEG
-                    && pose.center_error(&truth) <= MAX_CENTER_ERROR * scale;
-                if right {
-                    exit_code::POSE_RIGHT
-                } else {
-                    exit_code::POSE_WRONG
-                }
-            }
-            Ok(Err(_)) => exit_code::POSE_WRONG,
-            Err(Failure::LowConfidence { .. }) => exit_code::REFUSED,
-            Err(_) => exit_code::NOT_LOCALIZED,
-        },
-        ResponseBody::Error(LinkError::Rejected(_)) => exit_code::QUERY_REJECTED,
-        _ => exit_code::DATA_INVALID,
+        ResponseBody::Localized(reply) => {
+            let code = match reply.outcome.map(|p| p.to_pose()) {
+                Ok(Ok(pose)) => grade(&pose, &truth, scale),
+                Ok(Err(_)) => exit_code::POSE_WRONG,
+                Err(Failure::LowConfidence { .. }) => exit_code::REFUSED,
+                Err(_) => exit_code::NOT_LOCALIZED,
+            };
+            (code, reply.timings)
+        }
+        ResponseBody::Error(LinkError::Rejected(_)) => (exit_code::QUERY_REJECTED, None),
+        _ => (exit_code::DATA_INVALID, None),
     }
 }
 
-// Entry point called by the kernel (no C runtime): clears the frame pointer, aligns the
-// stack to 16 bytes as the C ABI expects at a call, and calls `firmware_main`.
-core::arch::global_asm!(
-    ".globl _start",
-    "_start:",
-    "xor ebp, ebp",
-    "and rsp, -16",
-    "call {main}",
-    "ud2",
-    main = sym firmware_main,
-);
+/// Right ([`exit_code::POSE_RIGHT`]) when `pose` is within the thresholds of `truth`.
+fn grade(pose: &Pose, truth: &Pose, scale: f64) -> i32 {
+    let right = pose.rotation_error_deg(truth) <= MAX_ROTATION_DEG
+        && pose.center_error(truth) <= MAX_CENTER_ERROR * scale;
+    if right {
+        exit_code::POSE_RIGHT
+    } else {
+        exit_code::POSE_WRONG
+    }
+}
 
-/// Takes the workspaces and runs the image once.
-extern "C" fn firmware_main() -> ! {
-    // SAFETY: the image is single-threaded, has no interrupt handlers, and this function
-    // runs once: these are the only references ever made to the two statics, so they are
-    // unique for the rest of the program.
+/// Validates the blobs and serves the embedded request through the device loop; the reply
+/// frame is left in `io`.
+fn serve(
+    localizer: &'static mut Localizer<CAPACITY, f16>,
+    device: &'static mut Device<CAPACITY, RX>,
+    clock: Option<&dyn Clock>,
+    io: &mut Loopback,
+) -> Result<(), i32> {
+    if Model::from_bytes(MODEL).is_err() {
+        return Err(exit_code::MODEL_INVALID);
+    }
+    if Map::from_bytes(MAP).is_err() {
+        return Err(exit_code::MAP_INVALID);
+    }
+    let Ok(service) = Service::new(localizer, MODEL, MAP, NoPin) else {
+        return Err(exit_code::MODEL_INVALID);
+    };
+    let mut service = match clock {
+        Some(clock) => service.with_clock(clock),
+        None => service,
+    };
+    match device.serve(io, &mut service) {
+        Ok(Served::Answered { id: 1 }) => Ok(()),
+        _ => Err(exit_code::DATA_INVALID),
+    }
+}
+
+/// A line of at most 127 bytes, formatted in place (no allocator).
+struct Line {
+    bytes: [u8; 128],
+    len: usize,
+}
+
+impl Line {
+    fn new() -> Self {
+        Line {
+            bytes: [0; 128],
+            len: 0,
+        }
+    }
+
+    fn as_str(&self) -> &str {
+        core::str::from_utf8(&self.bytes[..self.len]).unwrap_or("")
+    }
+}
+
+impl core::fmt::Write for Line {
+    fn write_str(&mut self, s: &str) -> core::fmt::Result {
+        let end = self.len + s.len();
+        // One byte stays free for a terminating zero (semihosting's SYS_WRITE0).
+        if end >= self.bytes.len() {
+            return Err(core::fmt::Error);
+        }
+        self.bytes[self.len..end].copy_from_slice(s.as_bytes());
+        self.len = end;
+        Ok(())
+    }
+}
+
+/// Prints one formatted line through the board.
+fn print(args: core::fmt::Arguments<'_>) {
+    let mut line = Line::new();
+    // A line longer than the buffer is printed cut.
+    let _ = line.write_fmt(args);
+    let _ = line.write_str("\n");
+    board::print(line.as_str());
+}
+
+/// Prints the instruction counts (valid when QEMU runs with `-icount shift=0`: one
+/// instruction per virtual nanosecond, so a microsecond of the clock is 1,000
+/// instructions).
+fn print_counts(total: u64, timings: Option<&StageTimings>) {
+    print(format_args!("instructions, whole query: {total}"));
+    if let Some(t) = timings {
+        let stages = [
+            ("prepare", t.prepare_us),
+            ("encode", t.encode_us),
+            ("match", t.match_us),
+            ("merge", t.merge_us),
+            ("pose", t.pose_us),
+            ("localize", t.total_us),
+        ];
+        for (name, kilo) in stages {
+            print(format_args!("instructions (thousands), {name}: {kilo}"));
+        }
+    }
+}
+
+/// A board's instruction counter, also the stage clock of the replies.
+pub trait Counter {
+    /// Instructions since an arbitrary, fixed origin.
+    fn instructions(&self) -> u64;
+    /// The same count as the core's [`Clock`] (microseconds of a one instruction per
+    /// nanosecond machine).
+    fn clock(&self) -> &dyn Clock;
+}
+
+/// Takes the workspaces, checks the FMA, serves and grades the query once, prints the
+/// counts (with a `counter`) and returns the exit status.
+fn firmware_main(counter: Option<&'static dyn Counter>) -> i32 {
+    // The Cortex-M start-up code zeroes `.bss` only: the workspace in `.psram` is written
+    // here, before any reference to it exists.
+    // SAFETY: nothing has referenced the static yet; `write` does not read or drop the
+    // uninitialised memory it replaces.
+    #[cfg(target_arch = "arm")]
+    unsafe {
+        addr_of_mut!(LOCALIZER).write(Localizer::new());
+    }
+    // SAFETY: the image is single-threaded, its interrupt handlers (a counter's) never
+    // touch these statics, and this function runs once: these are the only references
+    // ever made to the two statics, so they are unique for the rest of the program.
     let (localizer, device) =
         unsafe { (&mut *addr_of_mut!(LOCALIZER), &mut *addr_of_mut!(DEVICE)) };
-    exit(run(localizer, device))
-}
-
-/// Ends the process with the Linux `exit` system call.
-fn exit(code: i32) -> ! {
-    // SAFETY: the exit system call takes one integer argument and never returns.
-    unsafe {
-        core::arch::asm!("syscall", in("rax") 60, in("rdi") code, options(noreturn));
+    if let Err(mismatch) = fma_check::run() {
+        let [a, b, c] = mismatch.operands;
+        print(format_args!(
+            "FMA check failed: mul_add({a:#x}, {b:#x}, {c:#x}) = {:#x}, libm::fmaf = {:#x}",
+            mismatch.got, mismatch.expected
+        ));
+        return exit_code::FMA_MISMATCH;
     }
+    let start = counter.map(|c| c.instructions());
+    let (code, timings) = run(localizer, device, counter.map(|c| c.clock()));
+    if let (Some(counter), Some(start)) = (counter, start) {
+        print_counts(counter.instructions() - start, timings.as_ref());
+    }
+    print(format_args!("exit status {code}"));
+    code
 }
 
 #[panic_handler]
 fn panic(_: &core::panic::PanicInfo) -> ! {
-    exit(exit_code::PANIC)
+    board::exit(exit_code::PANIC)
 }
-
-/// The prebuilt `libcore` references this symbol; with `panic = "abort"` it is never called.
-#[no_mangle]
-pub extern "C" fn rust_eh_personality() {}
