@@ -37,7 +37,10 @@ impl Pose {
     }
 
     /// Pose from a row-major 3x3 rotation matrix, re-orthonormalised, and a translation.
-    /// Fails on non-finite values.
+    /// Fails on non-finite values ([`Error::NonFinite`]) and on a matrix that is no rotation
+    /// up to the rounding of a stored file (`|R^T R - I| > STORED_ROTATION_TOLERANCE` per entry
+    /// or a non-positive determinant: [`Error::InvalidRotation`]), so the re-orthonormalisation
+    /// starts next to its answer and its iterations are bounded.
     pub fn from_matrix(r: &[[f64; 3]; 3], t: &[f64; 3]) -> Result<Self> {
         let finite = r.iter().flatten().chain(t.iter()).all(|v| v.is_finite());
         if !finite {
@@ -47,10 +50,13 @@ impl Pose {
             });
         }
         let m = Matrix3::from_fn(|i, j| r[i][j]);
-        Ok(Self::new(
-            Rotation3::from_matrix(&m),
-            Vector3::new(t[0], t[1], t[2]),
-        ))
+        let gram = m.transpose() * m - Matrix3::identity();
+        if gram.amax() > STORED_ROTATION_TOLERANCE || m.determinant() <= 0.0 {
+            return Err(Error::InvalidRotation { input: Input::Pose });
+        }
+        let guess = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(m));
+        let rotation = Rotation3::from_matrix_eps(&m, f64::EPSILON, 100, guess.to_rotation_matrix());
+        Ok(Self::new(rotation, Vector3::new(t[0], t[1], t[2])))
     }
 
     /// Pose from COLMAP's `QW QX QY QZ TX TY TZ`. Fails on non-finite values or a zero
@@ -154,6 +160,10 @@ impl Pose {
 /// Largest deviation of `R^T R` from the identity, per entry, that [`Pose::check`]
 /// accepts as a rotation (poses stored in `f64` deviate by about 1e-15).
 pub const ROTATION_TOLERANCE: f64 = 1e-6;
+
+/// How far from orthonormal a rotation read from a file may be ([`Pose::from_matrix`]): files
+/// store rotations with a few decimals, so this is looser than [`ROTATION_TOLERANCE`].
+pub const STORED_ROTATION_TOLERANCE: f64 = 1e-3;
 
 /// Smallest depth of a usable projection, as a fraction of the camera's reference depth
 /// (the median depth of the points it observes); see [`ProjectionRule`].

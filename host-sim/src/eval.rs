@@ -599,6 +599,7 @@ fn score(sample: &QuerySample, outcome: Outcome) -> QueryResult {
     let keypoint_error = keypoint_reprojection_error(sample, outcome.estimate.as_ref());
     let candidate_error = query_reprojection_error(
         &sample.camera,
+        &sample.projection,
         &sample.pose,
         outcome.candidate.as_ref(),
         &gt_points,

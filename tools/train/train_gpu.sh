@@ -11,9 +11,10 @@
 # options below. Example, the paper's configuration from scratch, the shipped one fine-tuned, and the shipped one
 # at a tenth of the learning rate:
 #   paper::128:12:4 paper3:models/gomatch.safetensors:128:12:4 low:models/gomatch.safetensors:128:12:4:--lr,1e-4
-# Every run: at most 1024 points per set, batch 32, Adam 1e-3, outlier rate 0.5. Training data: the real training
-# scenes plus 4 x 30 synthetic scenes (seeds 0, 2, 3, 4; seed 1 is the firmware query's), each file written by
-# its own process; validation: colmap/mouse and colmap/sceaux. DEVICE=cpu tries it on a machine without a GPU,
+# Every run: at most 1024 points per set, batch 32, Adam 1e-3, outlier rate 0.5. Training data: every real
+# training scene of DATA (COLMAP, OpenSfM, BAL, Bundler; REAL_QUERIES queries each, default 100) plus, per
+# synthetic seed 0, 2, 3, 4 (seed 1 is the firmware query's), 30 scenes of the four layouts and 30 photo
+# collections, each file written by its own process; validation: 20 queries of each validation scene. DEVICE=cpu tries it on a machine without a GPU,
 # SYNTHETIC_SCENES=N writes N instead of 30 scenes per synthetic seed (the test's short version).
 set -euo pipefail
 sim=$(realpath "$1"); data=$(realpath "$2"); out=$(realpath -m "$3"); minutes=$4
@@ -26,16 +27,21 @@ mkdir -p "$out"
 py=${PYTHON:-python3}
 
 start=$(date +%s)
-"$sim" dataset --output "$work/real.safetensors" \
-    --colmap "$data/colmap/wmv_video0" --colmap "$data/colmap/wmv_video3" \
-    --bal "$data/bal/problem-49-7776-pre.txt" --bal "$data/bal/problem-21-11315-pre.txt" \
-    --bundler "$data/bundler/kermit/bundle.out" >"$work/gen-real.log" &
+validation=" colmap/mouse colmap/sceaux colmap/mamechun colmap/softmurata opensfm/projcv_cc9d27 "
+real=() val=()
+for dir in "$data"/colmap/* "$data"/opensfm/*; do
+    kind=$(basename "$(dirname "$dir")") name=$(basename "$dir")
+    if [[ $validation == *" $kind/$name "* ]]; then val+=(--"$kind" "$dir"); else real+=(--"$kind" "$dir"); fi
+done
+for file in "$data"/bal/*.txt; do real+=(--bal "$file"); done
+for file in "$data"/bundler/*/bundle.out; do real+=(--bundler "$file"); done
+"$sim" dataset --output "$work/real.safetensors" "${real[@]}" --queries-per-scene "${REAL_QUERIES:-100}" \
+    >"$work/gen-real.log" &
 for seed in 0 2 3 4; do
     "$sim" dataset --output "$work/synthetic-$seed.safetensors" --synthetic "${SYNTHETIC_SCENES:-30}" \
-        --synthetic-seed "$seed" >"$work/gen-$seed.log" &
+        --synthetic-collection "${SYNTHETIC_SCENES:-30}" --synthetic-seed "$seed" >"$work/gen-$seed.log" &
 done
-"$sim" dataset --output "$work/val.safetensors" --colmap "$data/colmap/mouse" --colmap "$data/colmap/sceaux" \
-    >"$work/gen-val.log" &
+"$sim" dataset --output "$work/val.safetensors" "${val[@]}" --queries-per-scene 20 >"$work/gen-val.log" &
 wait
 head -qn1 "$work"/gen-*.log
 echo "data written in $(($(date +%s) - start)) s"
