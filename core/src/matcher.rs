@@ -509,6 +509,32 @@ mod tests {
         });
     }
 
+    /// The kernels chosen at run time (the FMA instruction and 256-bit vectors where the
+    /// CPU has them) and the portable ones give bit-identical outputs.
+    #[test]
+    fn portable_kernels_give_identical_matches() {
+        with_model(|model| {
+            let (q, db) = (points(CAP, 3), points(CAP, 4));
+            let mut m = WORKSPACE.lock().expect("lock");
+            crate::nn::dispatch::set_portable_only(false);
+            let detected = m
+                .match_pair(model, &q, &db)
+                .expect("runs")
+                .as_slice()
+                .to_vec();
+            crate::nn::dispatch::set_portable_only(true);
+            let portable = m.match_pair(model, &q, &db).map(|s| s.as_slice().to_vec());
+            crate::nn::dispatch::set_portable_only(false);
+            let bits = |set: &[Match]| -> std::vec::Vec<(u16, u16, u32, u32)> {
+                set.iter()
+                    .map(|m| (m.i2d, m.i3d, m.sinkhorn.to_bits(), m.probability.to_bits()))
+                    .collect()
+            };
+            assert!(!detected.is_empty());
+            assert_eq!(bits(&detected), bits(&portable.expect("runs")));
+        });
+    }
+
     /// Widths that are not multiples of the SIMD blocks and 3 heads exercise every tail.
     #[test]
     fn odd_configuration_runs() {
