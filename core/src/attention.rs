@@ -8,6 +8,7 @@
 //! maximum of the neighbour term are kept. Cross attention streams the source points with
 //! an online softmax, so no `N x N x heads` score buffer exists.
 
+use crate::nn::dispatch::{with_fma, Fma, Kernel};
 use crate::nn::linear::{accumulate, chunk_rows, store, store_point_major};
 use crate::nn::{exp, instance_norm, leaky_relu, linear, relu, Input, Moments};
 use crate::weights::{
@@ -78,8 +79,55 @@ pub fn self_layer(
     n: usize,
     s: SelfScratch<'_>,
 ) {
+    with_fma(SelfLayer {
+        w,
+        graph,
+        k,
+        x,
+        n,
+        s,
+    });
+}
+
+/// The arguments of one [`self_layer`] call.
+struct SelfLayer<'k, 'w, 's> {
+    w: &'k SelfLayerWeights<'w>,
+    graph: &'k [Neighbours],
+    k: usize,
+    x: &'k mut [f32],
+    n: usize,
+    s: SelfScratch<'s>,
+}
+
+impl Kernel<()> for SelfLayer<'_, '_, '_> {
+    #[inline(always)]
+    fn run<F: Fma>(self, fma: F) {
+        let SelfLayer {
+            w,
+            graph,
+            k,
+            x,
+            n,
+            s,
+        } = self;
+        self_layer_with(fma, w, graph, k, x, n, s);
+    }
+}
+
+/// [`self_layer`] with the given [`Fma`].
+#[inline(always)]
+fn self_layer_with<F: Fma>(
+    fma: F,
+    w: &SelfLayerWeights<'_>,
+    graph: &[Neighbours],
+    k: usize,
+    x: &mut [f32],
+    n: usize,
+    s: SelfScratch<'_>,
+) {
     let d = w.fuse.rows();
     edge_conv(
+        fma,
         &w.edge1_centre,
         &w.edge1_neighbour,
         &Input::one(x, d, n),
@@ -90,6 +138,7 @@ pub fn self_layer(
         s.maxima,
     );
     edge_conv(
+        fma,
         &w.edge2_centre,
         &w.edge2_neighbour,
         &Input::one(s.x1, d, n),
@@ -122,7 +171,9 @@ pub fn self_layer(
 /// `out = max_k LeakyReLU(IN2d(W [x_i, x_j - x_i]))` over the `k` neighbours, with the
 /// instance norm statistics over all `n x k` edges of each channel.
 #[allow(clippy::too_many_arguments)]
-fn edge_conv(
+#[inline(always)]
+fn edge_conv<F: Fma>(
+    fma: F,
     centre: &Linear<'_>,
     neighbour: &Linear<'_>,
     input: &Input<'_>,
@@ -144,6 +195,7 @@ fn edge_conv(
         });
         for r in r0..r1 {
             finish_edge_channel(
+                fma,
                 &mut out[r * n..(r + 1) * n],
                 &rows[(r - r0) * n..(r - r0 + 1) * n],
                 &graph[..n],
@@ -158,7 +210,9 @@ fn edge_conv(
 /// Turns the centre term `a` of one channel into the layer output, given the neighbour
 /// term `b`: edge values `a_i + b_j`, their mean and variance over all edges, then
 /// `LeakyReLU((a_i + max_j b_j - mean) / std)`.
-fn finish_edge_channel(
+#[inline(always)]
+fn finish_edge_channel<F: Fma>(
+    fma: F,
     a: &mut [f32],
     b: &[f32],
     graph: &[Neighbours],
@@ -184,7 +238,7 @@ fn finish_edge_channel(
     }
     let normalizer = moments.normalizer(deviations);
     for (ai, &m) in a.iter_mut().zip(maxima.iter()) {
-        *ai = leaky_relu(normalizer.apply(*ai + m));
+        *ai = leaky_relu(normalizer.apply_with(fma, *ai + m));
     }
 }
 
@@ -279,6 +333,28 @@ const LANES: usize = 8;
 /// tiles (`QUERY_BLOCK x LANES`) summed in a fixed order: within a block over the head's
 /// dimensions (scores) or the block's sources (messages), then block after block.
 fn attend(shape: &AttentionShape, q: &mut [f32], k: &[f32], v: &[f32]) {
+    with_fma(Attend { shape, q, k, v });
+}
+
+/// The arguments of one [`attend`] call.
+struct Attend<'a> {
+    shape: &'a AttentionShape,
+    q: &'a mut [f32],
+    k: &'a [f32],
+    v: &'a [f32],
+}
+
+impl Kernel<()> for Attend<'_> {
+    /// Plain f32 arithmetic (no fused operations): the same bits compiled for any CPU.
+    #[inline(always)]
+    fn run<F: Fma>(self, _fma: F) {
+        attend_vectorised(self.shape, self.q, self.k, self.v);
+    }
+}
+
+/// [`attend`], compiled into the caller (for the widest vectors the CPU has).
+#[inline(always)]
+fn attend_vectorised(shape: &AttentionShape, q: &mut [f32], k: &[f32], v: &[f32]) {
     let AttentionShape {
         heads,
         head_dim,
@@ -615,7 +691,14 @@ mod tests {
         instance_norm(&mut normed);
         let mut out = a;
         let mut maxima = [0.0; 4];
-        finish_edge_channel(&mut out, &b, &graph, 2, &mut maxima);
+        finish_edge_channel(
+            crate::nn::dispatch::Portable,
+            &mut out,
+            &b,
+            &graph,
+            2,
+            &mut maxima,
+        );
         for i in 0..4 {
             let expected = leaky_relu(normed[i * 2]).max(leaky_relu(normed[i * 2 + 1]));
             assert!((out[i] - expected).abs() < 1e-6, "{i}");

@@ -7,10 +7,14 @@
 //! ```
 //!
 //! [`Matcher`] holds every buffer; it is built by a `const fn` so it can live in a `static`
-//! (zero-initialised, in `.bss`) and [`Matcher::BYTES`] gives its size for placing it. The
-//! query is encoded once ([`Matcher::encode_query`]) and matched against any number of
-//! database views ([`Matcher::match_view`]); the attention and everything after it are
-//! per pair.
+//! (zero-initialised, in `.bss`) and [`Matcher::BYTES`] gives its size for placing it.
+//!
+//! Work is done once per query where it can be: [`Matcher::encode_query`] runs everything
+//! that depends on the query alone (its encoder output, its k-NN graph and the first
+//! self-attention layer, which does not yet see the view), and [`Matcher::match_view`]
+//! runs, per view, the view's encoder, graph and first self-attention layer, then per
+//! pair the cross attention, the second self attention, the cost, Sinkhorn, the mutual
+//! assignment and the classifier.
 
 use crate::attention::{
     cross_layer, knn_graph, neighbour_count, self_layer, Neighbours, SelfScratch, FUSE_BLOCK,
@@ -222,23 +226,35 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
         }
     }
 
-    /// Encodes the query keypoints (bearing coordinates `(x/z, y/z)`) and builds their
-    /// neighbour graph, for any number of following [`Matcher::match_view`] calls.
+    /// Encodes the query keypoints (bearing coordinates `(x/z, y/z)`), builds their
+    /// neighbour graph and runs the first self-attention layer on them (all that depends on
+    /// the query alone), for any number of following [`Matcher::match_view`] calls.
     pub fn encode_query(&mut self, model: &Model<'_>, query: &[[f32; 2]]) -> Result<()> {
+        self.encode_query_observed(model, query, &mut ())
+    }
+
+    /// [`Matcher::encode_query`] reporting [`Stage::Enc2d`] and [`Stage::Att0Self2d`] to
+    /// `observer`.
+    pub fn encode_query_observed<O: Observer<S>>(
+        &mut self,
+        model: &Model<'_>,
+        query: &[[f32; 2]],
+        observer: &mut O,
+    ) -> Result<()> {
         self.query_encoded = false;
         self.check_points(query, Which::Keypoints)?;
         let n = query.len();
         let d = usize::from(model.config().feature_dim);
-        let enc2d = &mut self.features.as_flattened_mut()[..d * n];
-        encode(
-            &model.encoder,
-            query,
-            enc2d,
-            self.pool.as_flattened_mut(),
-            self.rows.as_flattened_mut(),
-        );
+        let x = &mut self.features.as_flattened_mut()[..d * n];
+        let (pool, rows) = (self.pool.as_flattened_mut(), self.rows.as_flattened_mut());
+        encode(&model.encoder, query, x, pool, rows);
+        observer.features(Stage::Enc2d, x, d, n);
         let k = neighbour_count(usize::from(model.config().knn), n);
-        knn_graph(query, k, &mut self.graph2d[..n]);
+        let graph = &mut self.graph2d[..n];
+        knn_graph(query, k, graph);
+        let scratch = self_scratch(pool, rows, &mut self.fused, d, n);
+        self_layer(&model.self_layers[0], graph, k, x, n, scratch);
+        observer.features(Stage::Att0Self2d, x, d, n);
         self.query_len = n;
         self.query_config = *model.config();
         self.query_encoded = true;
@@ -262,7 +278,8 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
         self.match_view(model, db)
     }
 
-    /// [`Matcher::match_view`] reporting every intermediate output to `observer`.
+    /// [`Matcher::match_view`] reporting every intermediate output from [`Stage::Enc3d`]
+    /// on to `observer` (the query's first two are reported when it is encoded).
     pub fn match_view_observed<O: Observer<S>>(
         &mut self,
         model: &Model<'_>,
@@ -279,50 +296,37 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
         let slot = MAX_FEATURE_DIM * N;
         let rows = self.rows.as_flattened_mut();
         let pool = self.pool.as_flattened_mut();
-        let (enc2d, descriptors) = self.features.as_flattened_mut().split_at_mut(slot);
+        let (query, descriptors) = self.features.as_flattened_mut().split_at_mut(slot);
         let (desc2d, desc3d) = descriptors.split_at_mut(slot);
         let (desc2d, desc3d) = (&mut desc2d[..d * n2], &mut desc3d[..d * n3]);
 
         encode(&model.encoder, db, desc3d, pool, rows);
+        observer.features(Stage::Enc3d, desc3d, d, n3);
         let k3 = neighbour_count(usize::from(config.knn), n3);
         let k2 = neighbour_count(usize::from(config.knn), n2);
         knn_graph(db, k3, &mut self.graph3d[..n3]);
-        desc2d.copy_from_slice(&enc2d[..d * n2]);
-        observer.features(Stage::Enc2d, desc2d, d, n2);
-        observer.features(Stage::Enc3d, desc3d, d, n3);
+        let graph3d = &self.graph3d[..n3];
+        let scratch = self_scratch(pool, rows, &mut self.fused, d, n3);
+        self_layer(&model.self_layers[0], graph3d, k3, desc3d, n3, scratch);
+        observer.features(Stage::Att0Self3d, desc3d, d, n3);
+        desc2d.copy_from_slice(&query[..d * n2]);
 
-        let stages = [
-            (Stage::Att0Self2d, Stage::Att0Self3d),
-            (Stage::Att1Cross2d, Stage::Att1Cross3d),
-            (Stage::Att2Self2d, Stage::Att2Self3d),
+        let heads = usize::from(config.heads);
+        cross_layer(&model.cross, heads, desc2d, n2, desc3d, n3, pool);
+        cross_layer(&model.cross, heads, desc3d, n3, desc2d, n2, pool);
+        observer.features(Stage::Att1Cross2d, desc2d, d, n2);
+        observer.features(Stage::Att1Cross3d, desc3d, d, n3);
+
+        let sets = [
+            (&mut *desc2d, n2, &self.graph2d[..n2], k2),
+            (&mut *desc3d, n3, graph3d, k3),
         ];
-        for (layer, (stage2d, stage3d)) in stages.into_iter().enumerate() {
-            if layer == 1 {
-                let heads = usize::from(config.heads);
-                cross_layer(&model.cross, heads, desc2d, n2, desc3d, n3, pool);
-                cross_layer(&model.cross, heads, desc3d, n3, desc2d, n2, pool);
-            } else {
-                let w = &model.self_layers[layer / 2];
-                let sets = [
-                    (&mut *desc2d, n2, &self.graph2d[..n2], k2),
-                    (&mut *desc3d, n3, &self.graph3d[..n3], k3),
-                ];
-                for (x, n, graph, k) in sets {
-                    let (x1, x2) = pool.split_at_mut(d * n);
-                    let (maxima, block_rows) = rows.split_at_mut(n);
-                    let scratch = SelfScratch {
-                        x1,
-                        x2,
-                        rows: block_rows,
-                        maxima,
-                        fused: &mut self.fused,
-                    };
-                    self_layer(w, graph, k, x, n, scratch);
-                }
-            }
-            observer.features(stage2d, desc2d, d, n2);
-            observer.features(stage3d, desc3d, d, n3);
+        for (x, n, graph, k) in sets {
+            let scratch = self_scratch(pool, rows, &mut self.fused, d, n);
+            self_layer(&model.self_layers[1], graph, k, x, n, scratch);
         }
+        observer.features(Stage::Att2Self2d, desc2d, d, n2);
+        observer.features(Stage::Att2Self3d, desc3d, d, n3);
 
         l2_normalize_points(desc2d, d, n2, rows);
         l2_normalize_points(desc3d, d, n3, rows);
@@ -396,6 +400,26 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
             });
         }
         Ok(())
+    }
+}
+
+/// Splits the stage scratch for a self-attention layer on a set of `n` points of `d`
+/// channels.
+fn self_scratch<'s>(
+    pool: &'s mut [f32],
+    rows: &'s mut [f32],
+    fused: &'s mut [f32],
+    d: usize,
+    n: usize,
+) -> SelfScratch<'s> {
+    let (x1, x2) = pool.split_at_mut(d * n);
+    let (maxima, rows) = rows.split_at_mut(n);
+    SelfScratch {
+        x1,
+        x2,
+        rows,
+        maxima,
+        fused,
     }
 }
 
@@ -482,6 +506,32 @@ mod tests {
             assert!(other > 0);
             let back = m.match_view(model, &db).expect("runs").as_slice().to_vec();
             assert_eq!(first, back);
+        });
+    }
+
+    /// The kernels chosen at run time (the FMA instruction and 256-bit vectors where the
+    /// CPU has them) and the portable ones give bit-identical outputs.
+    #[test]
+    fn portable_kernels_give_identical_matches() {
+        with_model(|model| {
+            let (q, db) = (points(CAP, 3), points(CAP, 4));
+            let mut m = WORKSPACE.lock().expect("lock");
+            crate::nn::dispatch::set_portable_only(false);
+            let detected = m
+                .match_pair(model, &q, &db)
+                .expect("runs")
+                .as_slice()
+                .to_vec();
+            crate::nn::dispatch::set_portable_only(true);
+            let portable = m.match_pair(model, &q, &db).map(|s| s.as_slice().to_vec());
+            crate::nn::dispatch::set_portable_only(false);
+            let bits = |set: &[Match]| -> std::vec::Vec<(u16, u16, u32, u32)> {
+                set.iter()
+                    .map(|m| (m.i2d, m.i3d, m.sinkhorn.to_bits(), m.probability.to_bits()))
+                    .collect()
+            };
+            assert!(!detected.is_empty());
+            assert_eq!(bits(&detected), bits(&portable.expect("runs")));
         });
     }
 

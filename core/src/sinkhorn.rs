@@ -7,6 +7,7 @@
 //! The transport plan `P = exp((-C + u_i + v_j) / eps)` is never stored either: it is
 //! evaluated on demand from the cost and the potentials `u`, `v`.
 
+use crate::nn::dispatch::{with_fma, Fma, Kernel};
 use crate::nn::linear::WeightRows;
 use crate::nn::{exp, linear, Input};
 
@@ -213,6 +214,7 @@ fn log_marginal(m: usize, n: usize, dustbin: bool) -> f32 {
 }
 
 /// `max + ln(sum exp(x - max))` of one row given by `values`, in 8 lanes.
+#[inline(always)]
 fn logsumexp(values: &[f32]) -> f32 {
     let mut maxima = [f32::NEG_INFINITY; 8];
     let mut chunks = values.chunks_exact(8);
@@ -248,6 +250,56 @@ fn logsumexp(values: &[f32]) -> f32 {
 /// `u` (`n3 + 1`), `v` (`n2 + 1`) receive the potentials; `scratch` holds
 /// `n3 + 1 + 5 n2 + 3` values. Returns the number of iterations run.
 pub fn sinkhorn<S: PlanScalar>(
+    cost: &[S],
+    n3: usize,
+    n2: usize,
+    params: &SinkhornParams,
+    u: &mut [f32],
+    v: &mut [f32],
+    scratch: &mut [f32],
+) -> usize {
+    with_fma(Sinkhorn {
+        cost,
+        n3,
+        n2,
+        params,
+        u,
+        v,
+        scratch,
+    })
+}
+
+/// The arguments of one [`sinkhorn`] call.
+struct Sinkhorn<'a, S> {
+    cost: &'a [S],
+    n3: usize,
+    n2: usize,
+    params: &'a SinkhornParams,
+    u: &'a mut [f32],
+    v: &'a mut [f32],
+    scratch: &'a mut [f32],
+}
+
+impl<S: PlanScalar> Kernel<usize> for Sinkhorn<'_, S> {
+    /// Plain f32 arithmetic (no fused operations): the same bits compiled for any CPU.
+    #[inline(always)]
+    fn run<F: Fma>(self, _fma: F) -> usize {
+        let Sinkhorn {
+            cost,
+            n3,
+            n2,
+            params,
+            u,
+            v,
+            scratch,
+        } = self;
+        sinkhorn_vectorised(cost, n3, n2, params, u, v, scratch)
+    }
+}
+
+/// [`sinkhorn`], compiled into the caller (for the widest vectors the CPU has).
+#[inline(always)]
+fn sinkhorn_vectorised<S: PlanScalar>(
     cost: &[S],
     n3: usize,
     n2: usize,

@@ -6,7 +6,6 @@
 //! `gomatch-tools convert`. Inputs: deterministic pseudo-random bearings; the database is
 //! the query with noise plus outliers. Run: `cargo bench -p gomatch-sim --bench matcher`.
 
-use std::path::PathBuf;
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
@@ -16,14 +15,16 @@ use gomatch::{Matcher, Model, Observer, Precision, Stage};
 use gomatch_tools::convert::{convert_with, Options};
 use gomatch_tools::quantize::Rounding;
 use half::f16;
+use workload::pair;
+
+mod workload;
 
 const CAPACITY: usize = 1024;
 static MATCHER_F32: Mutex<Matcher<CAPACITY, f32>> = Mutex::new(Matcher::new());
 static MATCHER_F16: Mutex<Matcher<CAPACITY, f16>> = Mutex::new(Matcher::new());
 
 fn checkpoint() -> Option<Vec<u8>> {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/reference/fixtures/weights.safetensors");
+    let path = workload::shared("reference/fixtures/weights.safetensors");
     match std::fs::read(&path) {
         Ok(bytes) => Some(bytes),
         Err(_) => {
@@ -31,38 +32,6 @@ fn checkpoint() -> Option<Vec<u8>> {
             None
         }
     }
-}
-
-/// `n` bearings in [-0.6, 0.6]^2 from a linear congruential generator.
-fn bearings(n: usize, seed: u64) -> Vec<[f32; 2]> {
-    let mut state = seed
-        .wrapping_mul(6364136223846793005)
-        .wrapping_add(1442695040888963407);
-    let mut next = move || {
-        state = state
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((state >> 40) as f32 / (1u64 << 24) as f32) * 1.2 - 0.6
-    };
-    (0..n).map(|_| [next(), next()]).collect()
-}
-
-/// Query and database: 70 % of the database are the query points with noise.
-fn pair(n: usize) -> (Vec<[f32; 2]>, Vec<[f32; 2]>) {
-    let query = bearings(n, 1);
-    let noise = bearings(n, 2);
-    let outliers = bearings(n, 3);
-    let db = (0..n)
-        .map(|i| {
-            if i * 10 < n * 7 {
-                let q = query[(i * 7919) % n];
-                [q[0] + noise[i][0] * 1e-3, q[1] + noise[i][1] * 1e-3]
-            } else {
-                outliers[i]
-            }
-        })
-        .collect();
-    (query, db)
 }
 
 /// Times between consecutive stage reports.
@@ -82,10 +51,12 @@ impl StageClock {
 impl<S: PlanScalar> Observer<S> for StageClock {
     fn features(&mut self, stage: Stage, _x: &[f32], _c: usize, _n: usize) {
         match stage {
-            Stage::Enc3d => self.lap("encoder (3D set)"),
-            Stage::Att0Self3d => self.lap("self attention 0"),
-            Stage::Att1Cross3d => self.lap("cross attention"),
-            Stage::Att2Self3d => self.lap("self attention 2"),
+            Stage::Enc2d => self.lap("encoder (query)"),
+            Stage::Att0Self2d => self.lap("self attention 0 (query)"),
+            Stage::Enc3d => self.lap("encoder (view)"),
+            Stage::Att0Self3d => self.lap("self attention 0 (view)"),
+            Stage::Att1Cross3d => self.lap("cross attention (pair)"),
+            Stage::Att2Self3d => self.lap("self attention 2 (pair)"),
             Stage::Desc3dL2 => self.lap("L2 normalise"),
             _ => {}
         }
@@ -109,15 +80,14 @@ fn breakdown<S: PlanScalar>(
     let mut runs: Vec<Vec<(&'static str, Duration)>> = Vec::new();
     let (mut matches, mut iterations) = (0, 0);
     for _ in 0..BREAKDOWN_RUNS {
-        let start = Instant::now();
-        m.encode_query(model, &query).unwrap();
         let mut clock = StageClock {
             last: Instant::now(),
-            spent: vec![("encoder (query)", start.elapsed())],
+            spent: Vec::new(),
         };
+        m.encode_query_observed(model, &query, &mut clock).unwrap();
         let set = m.match_view_observed(model, &db, &mut clock).unwrap();
         (matches, iterations) = (set.len(), set.sinkhorn_iterations());
-        clock.lap("mutual assignment + classifier");
+        clock.lap("mutual assignment + classifier (pair)");
         runs.push(clock.spent);
     }
     let median = |values: &mut Vec<Duration>| {

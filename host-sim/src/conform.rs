@@ -238,7 +238,7 @@ fn run_matcher<S: PlanScalar>(
         .map_err(|_| anyhow::anyhow!("workspace lock poisoned"))?;
     matcher.set_min_points(gomatch::matcher::MIN_POINTS_NETWORK);
     matcher
-        .encode_query(model, pts2d)
+        .encode_query_observed(model, pts2d, observer)
         .map_err(|e| anyhow::anyhow!("encoding the query: {e}"))?;
     let set = matcher
         .match_view_observed(model, pts3d, observer)

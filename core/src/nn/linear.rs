@@ -10,7 +10,7 @@
 //! BLAS takes its small-matrix path instead (bias first, separate multiply and add), and
 //! so does this kernel.
 
-use super::fma::mul_add;
+use super::dispatch::{with_fma, Fma, Kernel};
 use crate::weights::{Linear, MAX_FEATURE_DIM};
 
 /// Output rows computed together.
@@ -177,8 +177,41 @@ pub fn chunk_rows(cols: usize, scratch: usize, n: usize) -> usize {
 /// Rows are decoded a panel at a time (each weight once per call), interleaved by row
 /// block (`[input][ROW_BLOCK]`) so the inner loop reads the weights of a block with one
 /// load; for each tile of points, every row block of the panel passes over the cached
-/// input tile. Each output sums over the inputs in order.
+/// input tile. Each output sums over the inputs in order. Runs with the CPU's FMA
+/// instruction where it has one ([`with_fma`]); the bits are the same either way.
 pub fn linear<W: WeightRows>(
+    w: &W,
+    input: &Input<'_>,
+    rows: core::ops::Range<usize>,
+    emit: impl FnMut(usize, usize, &[f32]),
+) {
+    with_fma(LinearKernel {
+        w,
+        input,
+        rows,
+        emit,
+    });
+}
+
+/// The arguments of one [`linear`] call.
+struct LinearKernel<'k, 'a, W, E> {
+    w: &'k W,
+    input: &'k Input<'a>,
+    rows: core::ops::Range<usize>,
+    emit: E,
+}
+
+impl<W: WeightRows, E: FnMut(usize, usize, &[f32])> Kernel<()> for LinearKernel<'_, '_, W, E> {
+    #[inline(always)]
+    fn run<F: Fma>(self, fma: F) {
+        linear_with(fma, self.w, self.input, self.rows, self.emit);
+    }
+}
+
+/// [`linear`] with the given [`Fma`].
+#[inline(always)]
+pub fn linear_with<F: Fma, W: WeightRows>(
+    fma: F,
     w: &W,
     input: &Input<'_>,
     rows: core::ops::Range<usize>,
@@ -230,9 +263,9 @@ pub fn linear<W: WeightRows>(
                         }
                     } else {
                         let acc = if len == COL_BLOCK {
-                            block::<true>(weights, input, i0, len)
+                            block::<F, true>(fma, weights, input, i0, len)
                         } else {
-                            block::<false>(weights, input, i0, len)
+                            block::<F, false>(fma, weights, input, i0, len)
                         };
                         for (b, a) in acc.iter().enumerate().take(live) {
                             for t in 0..len {
@@ -254,7 +287,8 @@ pub fn linear<W: WeightRows>(
 /// Accumulates one `ROW_BLOCK x COL_BLOCK` block over all input channels, in order;
 /// `w[k]` holds the block's weights of input `k`. The accumulators stay in registers.
 #[inline(always)]
-fn block<const FULL: bool>(
+fn block<F: Fma, const FULL: bool>(
+    fma: F,
     w: &[[f32; ROW_BLOCK]],
     input: &Input<'_>,
     i0: usize,
@@ -281,7 +315,7 @@ fn block<const FULL: bool>(
             rest = rest.get(stride..).unwrap_or(&[]);
             for (a, &wb) in acc.iter_mut().zip(wk) {
                 for t in 0..COL_BLOCK {
-                    a[t] = mul_add(wb, x[t], a[t]);
+                    a[t] = fma.mul_add(wb, x[t], a[t]);
                 }
             }
         }
@@ -430,7 +464,7 @@ mod tests {
         let x: [f32; 5 * SMALL_SET] = core::array::from_fn(|i| libm::sinf(i as f32 * 1.7) * 3.0);
         let fused = |r: usize, i: usize, n: usize| {
             (0..cols).fold(0.0f32, |acc, k| {
-                super::mul_add(w[r * cols + k], x[k * n + i], acc)
+                libm::fmaf(w[r * cols + k], x[k * n + i], acc)
             }) + bias[r]
         };
         let plain = |r: usize, i: usize, n: usize| {
@@ -468,6 +502,38 @@ mod tests {
             }
         }
         assert!(paths_differ, "the test values do not tell the paths apart");
+    }
+
+    /// The dispatched kernel (the FMA instruction where the CPU has it) and the portable
+    /// one (libm's exact `fmaf` on builds without the instruction) give the same bits.
+    #[test]
+    fn dispatched_and_portable_kernels_agree_bit_for_bit() {
+        const ROWS: usize = 9;
+        const COLS: usize = 37;
+        const N: usize = 45;
+        let w: [f32; ROWS * COLS] = core::array::from_fn(|i| libm::sinf(i as f32 * 0.37) * 0.3);
+        let bias: [f32; ROWS] = core::array::from_fn(|i| i as f32 * 0.1 - 0.4);
+        let x: [f32; COLS * N] = core::array::from_fn(|i| libm::cosf(i as f32 * 1.3) * 2.0);
+        let dense = Dense {
+            w: &w,
+            rows: ROWS,
+            cols: COLS,
+            bias: &bias,
+        };
+        let input = Input::one(&x, COLS, N);
+        let mut dispatched = [0.0f32; ROWS * N];
+        linear(&dense, &input, 0..ROWS, |r, i0, v| {
+            store(&mut dispatched, N, r, i0, v)
+        });
+        let mut portable = [0.0f32; ROWS * N];
+        linear_with(
+            super::super::dispatch::Portable,
+            &dense,
+            &input,
+            0..ROWS,
+            |r, i0, v| store(&mut portable, N, r, i0, v),
+        );
+        assert_eq!(dispatched.map(f32::to_bits), portable.map(f32::to_bits));
     }
 
     #[test]

@@ -1,6 +1,6 @@
 //! Instance normalisation, L2 normalisation and the activations.
 
-use super::fma::mul_add;
+use super::dispatch::{with_fma, Fma, Kernel, Portable};
 
 /// Epsilon of the reference's `InstanceNorm1d/2d` (affine = false).
 pub const INSTANCE_NORM_EPS: f64 = 1e-5;
@@ -68,13 +68,35 @@ impl Normalizer {
     /// The normalised value of `x`; monotone increasing in `x`.
     #[inline(always)]
     pub fn apply(&self, x: f32) -> f32 {
-        mul_add(x, self.scale, self.offset)
+        self.apply_with(Portable, x)
+    }
+
+    /// [`Normalizer::apply`] with the given [`Fma`] (same bits).
+    #[inline(always)]
+    pub fn apply_with<F: Fma>(&self, fma: F, x: f32) -> f32 {
+        fma.mul_add(x, self.scale, self.offset)
     }
 }
 
 /// Instance norm of one channel over its points, in place: `(x - mean) / sqrt(var + eps)`
 /// with the biased variance (supp. "Feature Encoder"; `InstanceNorm1d`, affine = false).
 pub fn instance_norm(x: &mut [f32]) {
+    with_fma(InstanceNorm(x));
+}
+
+/// The argument of one [`instance_norm`] call.
+struct InstanceNorm<'a>(&'a mut [f32]);
+
+impl Kernel<()> for InstanceNorm<'_> {
+    #[inline(always)]
+    fn run<F: Fma>(self, fma: F) {
+        instance_norm_with(fma, self.0);
+    }
+}
+
+/// [`instance_norm`] with the given [`Fma`].
+#[inline(always)]
+fn instance_norm_with<F: Fma>(fma: F, x: &mut [f32]) {
     let mut moments = Moments::default();
     for &v in x.iter() {
         moments.add(v);
@@ -83,7 +105,7 @@ pub fn instance_norm(x: &mut [f32]) {
     let deviations: f64 = x.iter().map(|&v| Moments::squared_deviation(v, mean)).sum();
     let normalizer = moments.normalizer(deviations);
     for v in x.iter_mut() {
-        *v = normalizer.apply(*v);
+        *v = normalizer.apply_with(fma, *v);
     }
 }
 

@@ -1,0 +1,160 @@
+//! Kernel selection at run time: one build runs on every CPU of its architecture and uses
+//! the fused multiply-add instruction and 256-bit vectors where the CPU has them.
+//!
+//! The kernels that round with fused multiply-adds (the linear layer, instance norm) are
+//! generic over [`Fma`] and entered through [`with_fma`], which hands them [`X86Fma`] inside
+//! a function compiled for AVX2 and FMA when the CPU has both (checked once with `cpuid`
+//! and `xgetbv`, which work in `no_std`, and cached), and [`Portable`] otherwise. A fused
+//! multiply-add is exactly specified, so both give the same bits (see [`super::fma`]).
+
+use core::sync::atomic::{AtomicU8, Ordering};
+
+use super::fma::mul_add;
+
+/// A fused multiply-add `a * b + c` with a single rounding.
+pub trait Fma: Copy {
+    /// `a * b + c`, rounded once.
+    fn mul_add(self, a: f32, b: f32, c: f32) -> f32;
+}
+
+/// [`super::fma::mul_add`]: the instruction where the build enables it, else libm's exact
+/// routine.
+#[derive(Clone, Copy)]
+pub struct Portable;
+
+impl Fma for Portable {
+    #[inline(always)]
+    fn mul_add(self, a: f32, b: f32, c: f32) -> f32 {
+        mul_add(a, b, c)
+    }
+}
+
+/// The x86-64 FMA instruction. A value exists only on a CPU with AVX2 and FMA (it is made
+/// by [`X86Fma::detect`]), which makes its use sound.
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy)]
+pub struct X86Fma(());
+
+/// What [`with_fma`] uses: 0 not checked yet, 1 [`Portable`], 2 the instruction.
+static STATE: AtomicU8 = AtomicU8::new(0);
+
+/// With `true`, every later kernel call uses [`Portable`] even where the CPU has the FMA
+/// instruction (to check the fallback on such a CPU: the results are the same bits); with
+/// `false`, the CPU is checked again.
+pub fn set_portable_only(portable: bool) {
+    STATE.store(if portable { 1 } else { 0 }, Ordering::Relaxed);
+}
+
+#[cfg(target_arch = "x86_64")]
+impl X86Fma {
+    /// The token if this CPU has AVX2 and FMA and the OS saves the AVX registers (and
+    /// [`set_portable_only`] is off).
+    pub fn detect() -> Option<Self> {
+        let state = match STATE.load(Ordering::Relaxed) {
+            0 => {
+                let state = if cpu_has_avx2_fma() { 2 } else { 1 };
+                STATE.store(state, Ordering::Relaxed);
+                state
+            }
+            known => known,
+        };
+        (state == 2).then_some(X86Fma(()))
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+impl Fma for X86Fma {
+    #[inline(always)]
+    #[allow(unsafe_code)]
+    fn mul_add(self, a: f32, b: f32, c: f32) -> f32 {
+        use core::arch::x86_64::{_mm_cvtss_f32, _mm_fmadd_ss, _mm_set_ss};
+        // SAFETY: an `X86Fma` exists only when `detect` found the FMA instruction; the
+        // intrinsics only touch registers.
+        unsafe { _mm_cvtss_f32(_mm_fmadd_ss(_mm_set_ss(a), _mm_set_ss(b), _mm_set_ss(c))) }
+    }
+}
+
+/// `cpuid` leaf 1: FMA, OSXSAVE and AVX; `xgetbv`: the OS saves the SSE and AVX state;
+/// `cpuid` leaf 7: AVX2 (Intel SDM vol. 1, 14.3 "Detection of Intel AVX instructions").
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code, unused_unsafe)]
+fn cpu_has_avx2_fma() -> bool {
+    use core::arch::x86_64::{__cpuid, __cpuid_count, _xgetbv};
+    const FMA: u32 = 1 << 12;
+    const OSXSAVE: u32 = 1 << 27;
+    const AVX: u32 = 1 << 28;
+    const AVX2: u32 = 1 << 5;
+    const XMM_YMM_STATE: u64 = 0b110;
+    // SAFETY: every x86-64 CPU has `cpuid`.
+    let (max_leaf, leaf1) = unsafe { (__cpuid(0).eax, __cpuid(1)) };
+    if max_leaf < 7 || leaf1.ecx & (FMA | OSXSAVE | AVX) != FMA | OSXSAVE | AVX {
+        return false;
+    }
+    // SAFETY: OSXSAVE (checked above) means the OS enabled `xgetbv`.
+    let xcr0 = unsafe { _xgetbv(0) };
+    // SAFETY: as above; leaf 7 exists (max_leaf >= 7).
+    let leaf7 = unsafe { __cpuid_count(7, 0) };
+    xcr0 & XMM_YMM_STATE == XMM_YMM_STATE && leaf7.ebx & AVX2 != 0
+}
+
+/// Runs `kernel` with the best [`Fma`] of this CPU: on x86-64 with AVX2 and FMA inside a
+/// function compiled for them (so the kernel, inlined there, uses 256-bit FMA
+/// instructions), else with [`Portable`]. `kernel` must be `#[inline(always)]`-able code
+/// (a closure calling the generic kernel).
+#[inline(always)]
+pub fn with_fma<R>(kernel: impl Kernel<R>) -> R {
+    #[cfg(target_arch = "x86_64")]
+    if let Some(fma) = X86Fma::detect() {
+        return run_avx2_fma(fma, kernel);
+    }
+    kernel.run(Portable)
+}
+
+/// A kernel generic over its [`Fma`] (a closure cannot be generic, hence the trait).
+pub trait Kernel<R> {
+    /// Runs the kernel with `fma`.
+    fn run<F: Fma>(self, fma: F) -> R;
+}
+
+/// Runs `kernel` compiled for AVX2 and FMA.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+#[allow(unsafe_code)]
+fn run_avx2_fma<R>(fma: X86Fma, kernel: impl Kernel<R>) -> R {
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn avx2_fma<R>(fma: X86Fma, kernel: impl Kernel<R>) -> R {
+        kernel.run(fma)
+    }
+    // SAFETY: `fma` proves the CPU has AVX2 and FMA.
+    unsafe { avx2_fma(fma, kernel) }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    struct Probe(f32, f32, f32);
+
+    impl Kernel<u32> for Probe {
+        fn run<F: Fma>(self, fma: F) -> u32 {
+            fma.mul_add(self.0, self.1, self.2).to_bits()
+        }
+    }
+
+    /// Whichever variant this CPU gets, the result is the single-rounding one.
+    #[test]
+    fn dispatched_fma_rounds_once_like_libm() {
+        let a = 1.0 + f32::EPSILON * 2048.0;
+        for (x, y, z) in [(a, a, -1.0), (0.1, -0.7, 1e-30), (7e30, 1.5, -3.25)] {
+            let got = with_fma(Probe(x, y, z));
+            assert_eq!(got, libm::fmaf(x, y, z).to_bits());
+            assert_eq!(Portable.mul_add(x, y, z).to_bits(), got);
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn detection_is_stable() {
+        assert_eq!(X86Fma::detect().is_some(), X86Fma::detect().is_some());
+    }
+}
