@@ -33,10 +33,9 @@ else
   exit 0
 fi
 
-# RUSTFLAGS replaces .cargo/config.toml's flags, so the FMA feature is repeated here
-# (without it the matcher uses libm's software fmaf: same bits, slower).
+# The core picks its AVX2/FMA kernels at run time (core/src/nn/dispatch.rs), so no CPU feature is forced here.
 GOMATCH_FIRMWARE_MODEL="$model" \
-  RUSTFLAGS="-C link-arg=-nostartfiles -C link-arg=-static -C relocation-model=static -C target-feature=+fma,+avx2" \
+  RUSTFLAGS="-C link-arg=-nostartfiles -C link-arg=-static -C relocation-model=static" \
   cargo build --release --target x86_64-unknown-linux-gnu
 image=target/x86_64-unknown-linux-gnu/release/gomatch-firmware
 ls -l "$image"

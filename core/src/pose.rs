@@ -55,7 +55,8 @@ impl Pose {
             return Err(Error::InvalidRotation { input: Input::Pose });
         }
         let guess = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(m));
-        let rotation = Rotation3::from_matrix_eps(&m, f64::EPSILON, 100, guess.to_rotation_matrix());
+        let rotation =
+            Rotation3::from_matrix_eps(&m, f64::EPSILON, 100, guess.to_rotation_matrix());
         Ok(Self::new(rotation, Vector3::new(t[0], t[1], t[2])))
     }
 

@@ -14,8 +14,8 @@ use gomatch::map::{
 };
 use gomatch::pose::{MAX_BEARING, MIN_DEPTH_RATIO};
 
-use crate::protocol::{audit_projections, ProjectionAudit, ProtocolParams};
 use crate::colmap::camera_line;
+use crate::protocol::{audit_projections, ProjectionAudit, ProtocolParams};
 use crate::scene::{ImageId, Keypoint, Scene, SceneSource};
 
 /// Bytes of one SIFT descriptor (128 x u8).

@@ -274,7 +274,10 @@ fn held_out_images_of_a_real_model_are_localized_from_text_and_database_keypoint
         .filter(|e| e.is_some_and(|e| e < 10.0))
         .count();
     let reported = errors.values().filter(|e| e.is_some()).count();
-    println!("{within} of {} held-out images within 10 px, {reported} reported", errors.len());
+    println!(
+        "{within} of {} held-out images within 10 px, {reported} reported",
+        errors.len()
+    );
     assert_eq!(within, reported, "a reported pose is more than 10 px off");
     assert!(
         within * 2 >= errors.len(),
