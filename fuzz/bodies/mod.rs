@@ -24,8 +24,11 @@ const RANSAC_ITERATIONS: u32 = 64;
 /// Ids of the requests sent after the noise in [`device_link`].
 const PROBE_IDS: [u32; 3] = [0xF00D_0001, 0xF00D_0002, 0xF00D_0003];
 
+/// The body of a target: runs one input.
+pub type Body = fn(&[u8]);
+
 /// Every target: its name (a folder under `fuzz/seeds/` and `fuzz/regressions/`) and body.
-pub const TARGETS: [(&str, fn(&[u8])); 8] = [
+pub const TARGETS: [(&str, Body); 8] = [
     ("model_blob", model_blob),
     ("map_blob", map_blob),
     ("device_link", device_link),
