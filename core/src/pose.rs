@@ -39,8 +39,8 @@ impl Pose {
     /// Pose from a row-major 3x3 rotation matrix, re-orthonormalised, and a translation.
     /// Fails on non-finite values ([`Error::NonFinite`]) and on a matrix that is no rotation
     /// up to the rounding of a stored file (`|R^T R - I| > STORED_ROTATION_TOLERANCE` per entry
-    /// or a non-positive determinant: [`Error::InvalidRotation`]), so the re-orthonormalisation
-    /// starts next to its answer and its iterations are bounded.
+    /// or a non-positive determinant: [`Error::InvalidRotation`]), and its re-orthonormalisation
+    /// takes at most [`MAX_ORTHONORMALISATION_STEPS`] iterations.
     pub fn from_matrix(r: &[[f64; 3]; 3], t: &[f64; 3]) -> Result<Self> {
         let finite = r.iter().flatten().chain(t.iter()).all(|v| v.is_finite());
         if !finite {
@@ -54,9 +54,12 @@ impl Pose {
         if gram.amax() > STORED_ROTATION_TOLERANCE || m.determinant() <= 0.0 {
             return Err(Error::InvalidRotation { input: Input::Pose });
         }
-        let guess = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(m));
-        let rotation =
-            Rotation3::from_matrix_eps(&m, f64::EPSILON, 100, guess.to_rotation_matrix());
+        let rotation = Rotation3::from_matrix_eps(
+            &m,
+            f64::EPSILON,
+            MAX_ORTHONORMALISATION_STEPS,
+            Rotation3::identity(),
+        );
         Ok(Self::new(rotation, Vector3::new(t[0], t[1], t[2])))
     }
 
@@ -165,6 +168,11 @@ pub const ROTATION_TOLERANCE: f64 = 1e-6;
 /// How far from orthonormal a rotation read from a file may be ([`Pose::from_matrix`]): files
 /// store rotations with a few decimals, so this is looser than [`ROTATION_TOLERANCE`].
 pub const STORED_ROTATION_TOLERANCE: f64 = 1e-3;
+
+/// Iterations of the re-orthonormalisation in [`Pose::from_matrix`] (nalgebra's
+/// `Rotation3::from_matrix_eps`, from the identity): a bound, far above what a matrix within
+/// [`STORED_ROTATION_TOLERANCE`] needs.
+pub const MAX_ORTHONORMALISATION_STEPS: usize = 10_000;
 
 /// Smallest depth of a usable projection, as a fraction of the camera's reference depth
 /// (the median depth of the points it observes); see [`ProjectionRule`].

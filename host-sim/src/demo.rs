@@ -21,7 +21,7 @@ use crate::synthetic::SyntheticQueries;
 /// Localize a few queries of a built-in synthetic scene and print what happened.
 #[derive(Debug, Clone, Parser)]
 pub struct Args {
-    /// Model blob (default: <repo>/models/gomatch-int8.bin).
+    /// Model blob (default: `models/gomatch-int8.bin`, searched upwards).
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Use ground-truth matches even when a model is available.

@@ -41,7 +41,7 @@ static DIRECT_LOCALIZER: Mutex<Localizer<CAPACITY, f16>> = Mutex::new(Localizer:
 /// Drive a simulated localizer device over its link with a synthetic scene's queries.
 #[derive(Debug, Clone, Parser)]
 pub struct Args {
-    /// Model blob (default: <repo>/models/gomatch-int8.bin, else the reference fixture
+    /// Model blob (default: `models/gomatch-int8.bin`, searched upwards, else the reference fixture
     /// weights converted to int8).
     #[arg(long)]
     pub model: Option<PathBuf>,

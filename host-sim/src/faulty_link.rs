@@ -62,7 +62,7 @@ const FAULTS: [Fault; 6] = [
     Fault::Insert,
 ];
 
-/// Faults applied to one direction of the line, by kind (in [`FAULTS`] order).
+/// Faults applied to one direction of the line, by kind (in `FAULTS` order).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct FaultCounts(pub [u64; 6]);
 

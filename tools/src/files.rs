@@ -148,7 +148,7 @@ fn search_roots() -> Vec<PathBuf> {
     roots
 }
 
-/// The first existing `root/relative` over [`search_roots`].
+/// The first existing `root/relative` over `search_roots`.
 pub fn find_default(relative: &str) -> Option<PathBuf> {
     search_roots()
         .into_iter()

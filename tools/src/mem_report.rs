@@ -223,7 +223,7 @@ const PATTERN: u64 = 0xA5C3_5A3C_96E1_0FF0;
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Usage {
     /// Peak stack below the measuring frame, in bytes (a multiple of 8; at least
-    /// [`SKIP`]: less is not resolved).
+    /// `SKIP`: less is not resolved).
     pub stack_bytes: usize,
     /// Bytes allocated on the heap.
     pub heap_bytes: u64,
