@@ -24,7 +24,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::Camera;
 use crate::error::{Error, Result};
-use crate::localizer::Correspondence;
+use crate::merge::Correspondence;
 use crate::pose::Pose;
 
 /// Number of features of [`Evidence::features`].

@@ -8,12 +8,11 @@
 //! maximum of the neighbour term are kept. Cross attention streams the source points with
 //! an online softmax, so no `N x N x heads` score buffer exists.
 
+use crate::limits::{MAX_FEATURE_DIM, MAX_HEADS, MAX_KNN};
 use crate::nn::dispatch::{with_fma, Fma, Kernel};
 use crate::nn::linear::{accumulate, chunk_rows, store, store_point_major};
 use crate::nn::{exp, instance_norm, leaky_relu, linear, relu, Input, Moments};
-use crate::weights::{
-    CrossLayerWeights, Linear, SelfLayerWeights, MAX_FEATURE_DIM, MAX_HEADS, MAX_KNN,
-};
+use crate::weights::{CrossLayerWeights, Linear, SelfLayerWeights};
 
 /// Neighbour lists of a set: `graph[i][..k]` are the `k` nearest points of point `i`.
 pub type Neighbours = [u16; MAX_KNN];

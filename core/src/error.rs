@@ -3,8 +3,7 @@
 
 use core::fmt;
 
-use crate::localizer::Failure;
-use crate::weights::{ConfigField, TensorName, TensorPart};
+use serde::{Deserialize, Serialize};
 
 /// Which input an error refers to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -340,3 +339,130 @@ impl fmt::Display for Error {
 }
 
 impl core::error::Error for Error {}
+
+/// Why a valid query could not be localized.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub enum Failure {
+    /// Fewer query keypoints than the matcher needs.
+    TooFewKeypoints {
+        /// The matcher's minimum.
+        needed: usize,
+        /// Keypoints given.
+        found: usize,
+    },
+    /// No view was selected, or none had enough points in front of it to be matched.
+    NoViews {
+        /// Selected views skipped for having too few points.
+        skipped: usize,
+    },
+    /// Fewer merged matches than `min_matches`.
+    TooFewMatches {
+        /// The configured minimum.
+        needed: usize,
+        /// Merged matches found.
+        found: usize,
+    },
+    /// The best pose has fewer inliers than `min_inliers`.
+    TooFewInliers {
+        /// The configured minimum.
+        needed: usize,
+        /// Inliers of the best pose.
+        found: usize,
+    },
+    /// The matched 3D points or keypoints are coincident or collinear.
+    DegenerateMatches,
+    /// RANSAC found no pose hypothesis.
+    NoPoseFound,
+    /// The best pose is not trusted: its confidence is below the acceptance rule's
+    /// threshold ([`crate::localizer::LocalizerConfig::acceptance`]).
+    LowConfidence {
+        /// The pose's confidence.
+        confidence: f32,
+        /// The threshold.
+        needed: f32,
+        /// Inliers of the pose.
+        inliers: usize,
+    },
+}
+
+impl fmt::Display for Failure {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match *self {
+            Failure::TooFewKeypoints { needed, found } => {
+                write!(f, "too few keypoints: {found}, the matcher needs {needed}")
+            }
+            Failure::NoViews { skipped } => {
+                write!(f, "no view to match ({skipped} skipped for too few points)")
+            }
+            Failure::TooFewMatches { needed, found } => {
+                write!(f, "too few matches: {found}, at least {needed} needed")
+            }
+            Failure::TooFewInliers { needed, found } => {
+                write!(f, "too few inliers: {found}, at least {needed} needed")
+            }
+            Failure::DegenerateMatches => write!(f, "degenerate matches (collinear points)"),
+            Failure::NoPoseFound => write!(f, "RANSAC found no pose"),
+            Failure::LowConfidence {
+                confidence,
+                needed,
+                inliers,
+            } => write!(
+                f,
+                "low confidence: {confidence:.3} < {needed:.3} ({inliers} inliers)"
+            ),
+        }
+    }
+}
+
+/// A field of the model configuration ([`crate::weights::ModelConfig`]), named in errors.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ConfigField {
+    /// `feature_dim`
+    FeatureDim,
+    /// `encoder_blocks`
+    EncoderBlocks,
+    /// `classifier_dim`
+    ClassifierDim,
+    /// `classifier_blocks`
+    ClassifierBlocks,
+    /// `heads`
+    Heads,
+    /// `knn`
+    Knn,
+    /// `sinkhorn_iters`
+    SinkhornIters,
+    /// `sinkhorn_eps`
+    SinkhornEps,
+    /// `sinkhorn_stop`
+    SinkhornStop,
+    /// `match_threshold`
+    MatchThreshold,
+    /// `bin_score`
+    BinScore,
+}
+
+/// Name of a tensor in errors and reports: its role and, for repeated blocks, the index.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TensorName {
+    /// Role, e.g. `encoder.block.conv2`.
+    pub role: &'static str,
+    /// Block or layer index for repeated roles, 0 otherwise.
+    pub index: u8,
+}
+
+impl fmt::Display for TensorName {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}[{}]", self.role, self.index)
+    }
+}
+
+/// Which byte array of a tensor record an error refers to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TensorPart {
+    /// The weight matrix.
+    Weights,
+    /// The int8 scales.
+    Scales,
+    /// The bias.
+    Bias,
+}

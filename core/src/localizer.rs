@@ -17,23 +17,24 @@
 //! come from an optional caller-provided [`Clock`] and go, with the match counts, to the
 //! [`log`] crate and into the returned [`Localization`].
 
-use core::fmt;
-
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use crate::acceptance::{self, AcceptanceRule, Evidence, PoseSupport};
 use crate::camera::Camera;
+pub use crate::error::Failure;
 use crate::error::{Error, Input, Result};
+use crate::limits::MIN_CORRESPONDENCES;
 use crate::map::Map;
 use crate::matcher::Matcher;
+use crate::merge;
+pub use crate::merge::Correspondence;
 use crate::pose::{Pose, ProjectionRule};
-use crate::ransac::{estimate_pose, PnpWorkspace, RansacConfig, MIN_CORRESPONDENCES};
+use crate::ransac::{estimate_pose, PnpWorkspace, RansacConfig};
 use crate::sinkhorn::PlanScalar;
 use crate::weights::Model;
 
-/// Most database views one query is matched against (the paper's largest `k`).
-pub const MAX_VIEWS: usize = 10;
+pub use crate::limits::MAX_VIEWS;
 
 /// The database points a view contributes to matching, the one rule shared by the device
 /// and the host's evaluation protocol: the first `capacity` of the view's observed points,
@@ -167,80 +168,6 @@ pub trait Clock {
     fn now_us(&self) -> u64;
 }
 
-/// Why a valid query could not be localized.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub enum Failure {
-    /// Fewer query keypoints than the matcher needs.
-    TooFewKeypoints {
-        /// The matcher's minimum.
-        needed: usize,
-        /// Keypoints given.
-        found: usize,
-    },
-    /// No view was selected, or none had enough points in front of it to be matched.
-    NoViews {
-        /// Selected views skipped for having too few points.
-        skipped: usize,
-    },
-    /// Fewer merged matches than `min_matches`.
-    TooFewMatches {
-        /// The configured minimum.
-        needed: usize,
-        /// Merged matches found.
-        found: usize,
-    },
-    /// The best pose has fewer inliers than `min_inliers`.
-    TooFewInliers {
-        /// The configured minimum.
-        needed: usize,
-        /// Inliers of the best pose.
-        found: usize,
-    },
-    /// The matched 3D points or keypoints are coincident or collinear.
-    DegenerateMatches,
-    /// RANSAC found no pose hypothesis.
-    NoPoseFound,
-    /// The best pose is not trusted: its confidence is below the acceptance rule's
-    /// threshold ([`LocalizerConfig::acceptance`]).
-    LowConfidence {
-        /// The pose's confidence.
-        confidence: f32,
-        /// The threshold.
-        needed: f32,
-        /// Inliers of the pose.
-        inliers: usize,
-    },
-}
-
-impl fmt::Display for Failure {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match *self {
-            Failure::TooFewKeypoints { needed, found } => {
-                write!(f, "too few keypoints: {found}, the matcher needs {needed}")
-            }
-            Failure::NoViews { skipped } => {
-                write!(f, "no view to match ({skipped} skipped for too few points)")
-            }
-            Failure::TooFewMatches { needed, found } => {
-                write!(f, "too few matches: {found}, at least {needed} needed")
-            }
-            Failure::TooFewInliers { needed, found } => {
-                write!(f, "too few inliers: {found}, at least {needed} needed")
-            }
-            Failure::DegenerateMatches => write!(f, "degenerate matches (collinear points)"),
-            Failure::NoPoseFound => write!(f, "RANSAC found no pose"),
-            Failure::LowConfidence {
-                confidence,
-                needed,
-                inliers,
-            } => write!(
-                f,
-                "low confidence: {confidence:.3} < {needed:.3} ({inliers} inliers)"
-            ),
-        }
-    }
-}
-
 /// Match counts per stage, summed over the views.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 pub struct MatchCounts {
@@ -318,31 +245,6 @@ impl Localization {
     }
 }
 
-/// One merged 2D-3D correspondence.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Correspondence {
-    /// Index of the query keypoint.
-    pub keypoint: u16,
-    /// Index of the 3D point in the map.
-    pub point: u32,
-    /// Best classifier probability of the pair across views.
-    pub probability: f32,
-    /// Position, in the selection, of the view that gave that probability.
-    pub view: u8,
-    /// Inlier of the final (accepted) pose.
-    pub inlier: bool,
-}
-
-impl Correspondence {
-    const EMPTY: Self = Correspondence {
-        keypoint: 0,
-        point: 0,
-        probability: 0.0,
-        view: 0,
-        inlier: false,
-    };
-}
-
 /// Workspace and pipeline of the localizer for up to `N` query keypoints and `N` points
 /// per view, with the Sinkhorn cost stored as `S` (`f32` or `half::f16`).
 ///
@@ -368,11 +270,6 @@ pub struct Localizer<const N: usize, S: PlanScalar = f32> {
     bearings: [[f64; 2]; N],
     points: [[f64; 3]; N],
 }
-
-/// Probability of a keypoint without an accepted match while the views are matched. A
-/// match is accepted when its probability is above the model's (finite) threshold, so it
-/// is never `-inf`.
-const UNMATCHED: f32 = f32::NEG_INFINITY;
 
 impl<const N: usize, S: PlanScalar> Default for Localizer<N, S> {
     fn default() -> Self {
@@ -520,13 +417,7 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
 
     /// Marks the first `n` keypoints as having no accepted match yet.
     fn clear_matches(&mut self, n: usize) {
-        for (keypoint, slot) in self.merged.iter_mut().take(n).enumerate() {
-            *slot = Correspondence {
-                keypoint: keypoint as u16,
-                probability: UNMATCHED,
-                ..Correspondence::EMPTY
-            };
-        }
+        merge::clear(self.merged.get_mut(..n).unwrap_or(&mut []));
     }
 
     /// Matches the encoded query against one view (map index, position in the selection)
@@ -579,9 +470,7 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             ) else {
                 continue;
             };
-            if m.probability > best.probability {
-                (best.point, best.probability, best.view) = (point, m.probability, slot);
-            }
+            merge::keep_best(best, point, m.probability, slot);
         }
         counts.classified += accepted;
         log::debug!(
@@ -592,33 +481,12 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         Ok(true)
     }
 
-    /// Turns the per-keypoint best matches into correspondences where each 3D point also
-    /// appears once (its most probable keypoint; ties to the lower keypoint index), sorted
-    /// by keypoint, with the pose solver's inputs beside them: the keypoint's bearing,
-    /// recomputed in `f64` from its pixel, and the map point.
+    /// Merges the views' matches ([`merge::merge`]) and fills the pose solver's inputs
+    /// beside them: each keypoint's bearing, recomputed in `f64` from its pixel, and its
+    /// map point.
     fn merge(&mut self, map: &Map<'_>, query: &Query<'_>, n: usize) -> Result<()> {
-        let mut len = 0;
-        for i in 0..n.min(N) {
-            if self.merged[i].probability != UNMATCHED {
-                self.merged[len] = self.merged[i];
-                len += 1;
-            }
-        }
-        let merged = self.merged.get_mut(..len).unwrap_or(&mut []);
-        merged.sort_unstable_by(|a, b| {
-            (a.point.cmp(&b.point))
-                .then(b.probability.total_cmp(&a.probability))
-                .then(a.keypoint.cmp(&b.keypoint))
-        });
-        let mut kept = 0;
-        for i in 0..merged.len() {
-            if kept == 0 || merged[i].point != merged[kept - 1].point {
-                merged[kept] = merged[i];
-                kept += 1;
-            }
-        }
-        let merged = &mut merged[..kept];
-        merged.sort_unstable_by_key(|c| c.keypoint);
+        let kept = merge::merge(self.merged.get_mut(..n.min(N)).unwrap_or(&mut []));
+        let merged = &self.merged[..kept];
         for (c, (bearing, point)) in merged
             .iter()
             .zip(self.bearings.iter_mut().zip(self.points.iter_mut()))

@@ -30,16 +30,13 @@ use crate::nn::{l2_normalize_points, ROW_BLOCK};
 /// mutual assignment's fallback). That also holds Sinkhorn's `6 N + 4` values (`N >= 2`)
 /// and self attention's `(1 + ROW_BLOCK) N`.
 pub const SCRATCH_ROWS: usize = 2 * ROW_BLOCK;
+use crate::limits::{MAX_FEATURE_DIM, MAX_KNN};
 use crate::sinkhorn::{
     cost_matrix, mutual_assignment, sinkhorn, Match, PlanScalar, SinkhornParams, Transport,
 };
-use crate::weights::{Model, ModelConfig, MAX_FEATURE_DIM};
+use crate::weights::{Model, ModelConfig};
 
-/// Fewest keypoints (and points) per set: the paper counts a sample with fewer than 10 as
-/// failed (supp. "Keypoint Number Control").
-pub const MIN_KEYPOINTS: usize = 10;
-/// Fewest points the network itself can process (a neighbour graph needs two).
-pub const MIN_POINTS_NETWORK: usize = 2;
+pub use crate::limits::{MIN_KEYPOINTS, MIN_POINTS_NETWORK};
 
 /// Intermediate outputs, in forward order (names of the reference fixtures).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -187,8 +184,8 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
             fused: [0.0; MAX_FEATURE_DIM * FUSE_BLOCK],
             plan: [[S::ZERO; N]; N],
             potentials: [[0.0; N]; 3],
-            graph2d: [[0; crate::weights::MAX_KNN]; N],
-            graph3d: [[0; crate::weights::MAX_KNN]; N],
+            graph2d: [[0; MAX_KNN]; N],
+            graph3d: [[0; MAX_KNN]; N],
             nn12: [0; N],
             nn21: [0; N],
             matches: MatchSet::new(),
@@ -460,7 +457,7 @@ mod tests {
             let d = MAX_FEATURE_DIM;
             let features = 3 * d * n * 4 + 3 * d * n * 4 + SCRATCH_ROWS * n * 4;
             let fused = d * FUSE_BLOCK * 4;
-            let graphs = 2 * n * crate::weights::MAX_KNN * 2;
+            let graphs = 2 * n * MAX_KNN * 2;
             let matches = 2 * n * 12 + 8 + 4 + 8;
             let rest = 3 * n * 4 + 2 * n * 2 + 8 + core::mem::size_of::<ModelConfig>() + 8 + 8;
             features + fused + n * n * plan + graphs + matches + rest

@@ -32,8 +32,7 @@ use crate::pose::Pose;
 use crate::refine::{self, Loss, RefineConfig, SelectedCorrespondences};
 use crate::rng::SplitMix64;
 
-/// Fewest correspondences accepted: three for P3P and at least one to verify it.
-pub const MIN_CORRESPONDENCES: usize = 4;
+pub use crate::limits::MIN_CORRESPONDENCES;
 /// Points scored between two checks of the early exit of the MSAC loop.
 const SCORE_BLOCK: usize = 64;
 /// Local optimisation refits on the correspondences within this multiple of the threshold;

@@ -26,30 +26,19 @@
 //! `W [f_i, f_j - f_i] = (Wa - Wb) f_i + Wb f_j`, so each self layer stores the centre part
 //! `Wa - Wb` and the neighbour part `Wb` (a `k`-fold saving; its rounding stays ~1e-5).
 
-use core::fmt;
-
 use serde::{Deserialize, Serialize};
 
+pub use crate::error::{ConfigField, TensorName, TensorPart};
 use crate::error::{Error, Result};
+pub use crate::limits::{
+    MAX_CLASSIFIER_BLOCKS, MAX_ENCODER_BLOCKS, MAX_FEATURE_DIM, MAX_HEADS, MAX_KNN,
+    MAX_SINKHORN_ITERS, SELF_LAYERS,
+};
 
 /// First four bytes of every model blob.
 pub const MAGIC: [u8; 4] = *b"GMWB";
 /// Version of the blob layout this build reads.
 pub const FORMAT_VERSION: u16 = 2;
-/// Widest feature (and classifier) width the compiled workspace holds.
-pub const MAX_FEATURE_DIM: usize = 128;
-/// Most residual blocks in the point encoder.
-pub const MAX_ENCODER_BLOCKS: usize = 16;
-/// Most residual blocks in the match classifier.
-pub const MAX_CLASSIFIER_BLOCKS: usize = 8;
-/// Most neighbours of the self-attention graph.
-pub const MAX_KNN: usize = 16;
-/// Most cross-attention heads.
-pub const MAX_HEADS: usize = 8;
-/// Most Sinkhorn iterations.
-pub const MAX_SINKHORN_ITERS: usize = 100;
-/// Number of self-attention layers (the reference order is self, cross, self).
-pub const SELF_LAYERS: usize = 2;
 
 /// Bytes before the postcard payload: magic and version.
 const PREAMBLE: usize = 6;
@@ -185,33 +174,6 @@ impl ModelConfig {
     }
 }
 
-/// A field of [`ModelConfig`], named in errors.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ConfigField {
-    /// `feature_dim`
-    FeatureDim,
-    /// `encoder_blocks`
-    EncoderBlocks,
-    /// `classifier_dim`
-    ClassifierDim,
-    /// `classifier_blocks`
-    ClassifierBlocks,
-    /// `heads`
-    Heads,
-    /// `knn`
-    Knn,
-    /// `sinkhorn_iters`
-    SinkhornIters,
-    /// `sinkhorn_eps`
-    SinkhornEps,
-    /// `sinkhorn_stop`
-    SinkhornStop,
-    /// `match_threshold`
-    MatchThreshold,
-    /// `bin_score`
-    BinScore,
-}
-
 /// Header of the postcard payload.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct BlobHeader {
@@ -241,21 +203,6 @@ pub struct TensorRecord<'a> {
     /// `rows` f32 biases, or empty for a layer without bias.
     #[serde(borrow)]
     pub bias: &'a [u8],
-}
-
-/// Name of a tensor in errors and reports: its role and, for repeated blocks, the index.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct TensorName {
-    /// Role, e.g. `encoder.block.conv2`.
-    pub role: &'static str,
-    /// Block or layer index for repeated roles, 0 otherwise.
-    pub index: u8,
-}
-
-impl fmt::Display for TensorName {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}[{}]", self.role, self.index)
-    }
 }
 
 /// Expected name and shape of one tensor of the blob.
@@ -779,17 +726,6 @@ fn check_record<'a>(
         scales: record.scales,
         bias: record.bias,
     })
-}
-
-/// Which byte array of a tensor record an error refers to.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum TensorPart {
-    /// The weight matrix.
-    Weights,
-    /// The int8 scales.
-    Scales,
-    /// The bias.
-    Bias,
 }
 
 /// Lookup table of the reflected CRC-32 (IEEE 802.3, polynomial 0xEDB88320).

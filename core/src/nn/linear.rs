@@ -11,14 +11,13 @@
 //! so does this kernel.
 
 use super::dispatch::{with_fma, Fma, Kernel};
-use crate::weights::{Linear, MAX_FEATURE_DIM};
+use crate::weights::Linear;
 
 /// Output rows computed together.
 pub const ROW_BLOCK: usize = 4;
 /// Points computed together.
 pub const COL_BLOCK: usize = 16;
-/// Widest input of any layer (the self-attention fusing conv, 4d).
-pub const MAX_INPUT: usize = 4 * MAX_FEATURE_DIM;
+pub use crate::limits::MAX_INPUT;
 /// Fewest points of a set on which the reference's BLAS sums with fused multiply-adds
 /// and the bias last; on smaller sets it starts from the bias and multiplies and adds
 /// separately (measured on the reference fixtures, see README.md, "Conformance").

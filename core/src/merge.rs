@@ -1,0 +1,102 @@
+//! Multi-view merge (paper Sec. 4, "merge results from k pairs based on their matching
+//! scores"): each query keypoint keeps its most probable accepted match over the co-visible
+//! views, then each 3D point keeps its most probable keypoint.
+
+/// One merged 2D-3D correspondence.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Correspondence {
+    /// Index of the query keypoint.
+    pub keypoint: u16,
+    /// Index of the 3D point in the map.
+    pub point: u32,
+    /// Best classifier probability of the pair across views.
+    pub probability: f32,
+    /// Position, in the selection, of the view that gave that probability.
+    pub view: u8,
+    /// Inlier of the final (accepted) pose.
+    pub inlier: bool,
+}
+
+impl Correspondence {
+    /// An empty slot.
+    pub const EMPTY: Self = Correspondence {
+        keypoint: 0,
+        point: 0,
+        probability: 0.0,
+        view: 0,
+        inlier: false,
+    };
+}
+
+/// Probability of a keypoint without an accepted match while the views are matched. A
+/// match is accepted when its probability is above the model's (finite) threshold, so it
+/// is never `-inf`.
+const UNMATCHED: f32 = f32::NEG_INFINITY;
+
+/// Marks every slot as keypoint `i` (its index) without an accepted match yet.
+pub fn clear(slots: &mut [Correspondence]) {
+    for (keypoint, slot) in slots.iter_mut().enumerate() {
+        *slot = Correspondence {
+            keypoint: keypoint as u16,
+            probability: UNMATCHED,
+            ..Correspondence::EMPTY
+        };
+    }
+}
+
+/// Keeps an accepted match of one view in its keypoint's slot when it is more probable
+/// than the slot's best so far.
+pub fn keep_best(slot: &mut Correspondence, point: u32, probability: f32, view: u8) {
+    if probability > slot.probability {
+        (slot.point, slot.probability, slot.view) = (point, probability, view);
+    }
+}
+
+/// Turns the per-keypoint slots into correspondences where each 3D point also appears once
+/// (its most probable keypoint; ties to the lower keypoint index), sorted by keypoint, at
+/// the front of `slots`; returns their number.
+pub fn merge(slots: &mut [Correspondence]) -> usize {
+    let mut len = 0;
+    for i in 0..slots.len() {
+        if slots[i].probability != UNMATCHED {
+            slots[len] = slots[i];
+            len += 1;
+        }
+    }
+    let merged = &mut slots[..len];
+    merged.sort_unstable_by(|a, b| {
+        (a.point.cmp(&b.point))
+            .then(b.probability.total_cmp(&a.probability))
+            .then(a.keypoint.cmp(&b.keypoint))
+    });
+    let mut kept = 0;
+    for i in 0..merged.len() {
+        if kept == 0 || merged[i].point != merged[kept - 1].point {
+            merged[kept] = merged[i];
+            kept += 1;
+        }
+    }
+    merged[..kept].sort_unstable_by_key(|c| c.keypoint);
+    kept
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_keypoint_and_each_point_appear_once_with_their_best_match() {
+        let mut slots = [Correspondence::EMPTY; 5];
+        clear(&mut slots);
+        keep_best(&mut slots[0], 7, 0.6, 0);
+        keep_best(&mut slots[0], 8, 0.5, 1); // less probable: ignored
+        keep_best(&mut slots[1], 7, 0.9, 1); // point 7 goes to keypoint 1
+        keep_best(&mut slots[3], 9, 0.4, 2);
+        keep_best(&mut slots[4], 9, 0.4, 0); // tie: the lower keypoint keeps point 9
+        let kept = merge(&mut slots);
+        assert_eq!(kept, 2);
+        let pair = |c: &Correspondence| (c.keypoint, c.point, c.view);
+        assert_eq!(pair(&slots[0]), (1, 7, 1));
+        assert_eq!(pair(&slots[1]), (3, 9, 2));
+    }
+}
