@@ -31,6 +31,24 @@ pub enum MapItem {
     ViewPoints,
 }
 
+/// Which kind of blob an envelope error refers to (`crate::envelope`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BlobKind {
+    /// A model blob (`crate::weights`).
+    Model,
+    /// A map blob (`crate::map`).
+    Map,
+}
+
+impl fmt::Display for BlobKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            BlobKind::Model => "model",
+            BlobKind::Map => "map",
+        })
+    }
+}
+
 /// Every way the core can refuse its input.
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[non_exhaustive]
@@ -94,31 +112,49 @@ pub enum Error {
     DegenerateConfiguration,
     /// No pose hypothesis was supported by enough inliers.
     NoPoseFound,
-    /// A map blob shorter than its header or its declared payload.
-    MapTruncated {
+    /// A blob shorter than its header or its declared payload.
+    BlobTruncated {
+        /// Which blob.
+        blob: BlobKind,
         /// Bytes the blob must have.
         needed: usize,
         /// Bytes it has.
         found: usize,
     },
-    /// A blob that does not start with the map magic bytes.
-    MapBadMagic,
-    /// A map blob of another format version.
-    MapVersionMismatch {
-        /// The version this code reads.
+    /// A blob that does not start with its kind's magic bytes.
+    BlobMagic {
+        /// Which blob was expected.
+        blob: BlobKind,
+        /// The first four bytes found.
+        found: [u8; 4],
+    },
+    /// A blob of another format version.
+    BlobVersion {
+        /// Which blob.
+        blob: BlobKind,
+        /// The version this build reads.
         expected: u16,
         /// The version in the blob.
         found: u16,
     },
-    /// A map blob whose payload does not match its checksum.
-    MapChecksumMismatch {
-        /// Checksum stored in the header.
+    /// A header whose reserved bytes are set or that is followed by more bytes than its
+    /// declared payload.
+    BlobHeader {
+        /// Which blob.
+        blob: BlobKind,
+    },
+    /// A blob whose payload does not match its checksum (corrupted).
+    BlobChecksum {
+        /// Which blob.
+        blob: BlobKind,
+        /// CRC-32 stored in the header.
         stored: u32,
-        /// Checksum of the payload as found.
+        /// CRC-32 of the payload as found.
         computed: u32,
     },
-    /// A map payload that does not decode: bad encoding, record sizes, trailing bytes.
-    MapCorrupt,
+    /// A map payload that does not decode: bad encoding, record sizes, trailing bytes, a
+    /// name outside the name list or not UTF-8.
+    MapMalformed,
     /// An index into a map (or a reference inside it) beyond the end of what it indexes.
     MapIndexOutOfRange {
         /// What the index refers to.
@@ -138,34 +174,8 @@ pub enum Error {
         /// Name of the offending parameter.
         parameter: &'static str,
     },
-    /// A model blob shorter than its fixed envelope.
-    BlobTruncated {
-        /// Bytes the envelope needs.
-        needed: usize,
-        /// Bytes present.
-        found: usize,
-    },
-    /// A model blob that does not start with the magic bytes.
-    BlobMagic {
-        /// The first four bytes found.
-        found: [u8; 4],
-    },
-    /// A model blob of another format version.
-    BlobVersion {
-        /// Version this build reads.
-        expected: u16,
-        /// Version in the blob.
-        found: u16,
-    },
-    /// A model blob whose checksum does not match its content (corrupted).
-    BlobChecksum {
-        /// CRC-32 stored in the blob.
-        stored: u32,
-        /// CRC-32 of the content.
-        computed: u32,
-    },
-    /// A model blob whose payload cannot be decoded.
-    BlobMalformed {
+    /// A model payload that cannot be decoded.
+    ModelMalformed {
         /// Byte offset of the record that failed.
         offset: usize,
     },
@@ -259,21 +269,38 @@ impl fmt::Display for Error {
             Error::AllPointsBehindCamera => write!(f, "all points are at or behind the camera"),
             Error::DegenerateConfiguration => write!(f, "degenerate point configuration"),
             Error::NoPoseFound => write!(f, "no pose hypothesis found"),
-            Error::MapTruncated { needed, found } => {
-                write!(
-                    f,
-                    "map blob truncated: {needed} bytes needed, {found} found"
-                )
-            }
-            Error::MapBadMagic => write!(f, "not a map blob (bad magic bytes)"),
-            Error::MapVersionMismatch { expected, found } => {
-                write!(f, "map format version {found}, expected {expected}")
-            }
-            Error::MapChecksumMismatch { stored, computed } => write!(
+            Error::BlobTruncated {
+                blob,
+                needed,
+                found,
+            } => write!(
                 f,
-                "map checksum mismatch: stored {stored:#010x}, computed {computed:#010x}"
+                "{blob} blob truncated: {needed} bytes needed, {found} found"
             ),
-            Error::MapCorrupt => write!(f, "corrupt map payload"),
+            Error::BlobMagic { blob, found } => {
+                write!(f, "not a {blob} blob: magic {found:02x?}")
+            }
+            Error::BlobVersion {
+                blob,
+                expected,
+                found,
+            } => write!(
+                f,
+                "{blob} blob format version {found}, this build reads version {expected}"
+            ),
+            Error::BlobHeader { blob } => write!(
+                f,
+                "{blob} blob header invalid (reserved bytes set or bytes after the payload)"
+            ),
+            Error::BlobChecksum {
+                blob,
+                stored,
+                computed,
+            } => write!(
+                f,
+                "{blob} blob corrupted: checksum {computed:#010x}, stored {stored:#010x}"
+            ),
+            Error::MapMalformed => write!(f, "malformed map payload"),
             Error::MapIndexOutOfRange { item, index, limit } => {
                 write!(f, "map {item:?} index {index} out of range ({limit} items)")
             }
@@ -283,22 +310,7 @@ impl fmt::Display for Error {
             Error::InvalidConfig { parameter } => {
                 write!(f, "invalid configuration value: {parameter}")
             }
-            Error::BlobTruncated { needed, found } => {
-                write!(
-                    f,
-                    "model blob truncated: {found} bytes, need at least {needed}"
-                )
-            }
-            Error::BlobMagic { found } => write!(f, "not a model blob: magic {found:02x?}"),
-            Error::BlobVersion { expected, found } => write!(
-                f,
-                "model blob format version {found}, this build reads version {expected}"
-            ),
-            Error::BlobChecksum { stored, computed } => write!(
-                f,
-                "model blob corrupted: checksum {computed:08x}, stored {stored:08x}"
-            ),
-            Error::BlobMalformed { offset } => {
+            Error::ModelMalformed { offset } => {
                 write!(f, "model blob malformed at byte {offset}")
             }
             Error::TensorCount { expected, found } => {

@@ -25,6 +25,7 @@ pub mod attention;
 pub mod camera;
 pub mod classifier;
 pub mod encoder;
+pub mod envelope;
 pub mod error;
 pub mod limits;
 pub mod link;

@@ -44,7 +44,7 @@ use crate::localizer::{
 use crate::map::{Map, MAP_VERSION};
 use crate::pose::Pose;
 use crate::sinkhorn::PlanScalar;
-use crate::weights::{Model, ModelConfig, Precision, FORMAT_VERSION};
+use crate::weights::{Model, ModelConfig, Precision, MODEL_VERSION};
 
 /// Version of the messages below; a host compares it with [`DeviceInfo::protocol_version`].
 pub const PROTOCOL_VERSION: u16 = 2;
@@ -552,7 +552,7 @@ impl<'a, const N: usize, S: PlanScalar, P: OutputPin> Service<'a, N, S, P> {
             workspace_bytes: narrow(Localizer::<N, S>::BYTES),
             rx_frame_bytes: narrow(rx_frame_bytes),
             model: ModelInfo {
-                format_version: FORMAT_VERSION,
+                format_version: MODEL_VERSION,
                 precision: self.model.precision(),
                 config: *self.model.config(),
                 bytes: narrow(self.model_bytes),
@@ -1326,6 +1326,7 @@ mod tests {
         };
         assert_eq!(message.as_str(), "invalid configuration value: min_inliers");
         let long = Error::BlobChecksum {
+            blob: crate::error::BlobKind::Model,
             stored: 0,
             computed: 0,
         };

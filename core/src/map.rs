@@ -6,8 +6,8 @@
 //! Blob layout (all little-endian):
 //!
 //! ```text
-//! header  16 bytes: magic "GMAP" | format version u16 | reserved u16 = 0
-//!                   | payload length u32 | CRC-32 (IEEE) of the payload u32
+//! header  16 bytes: the blob envelope (crate::envelope): magic "GMAP", version,
+//!                   payload length, CRC-32 of the payload
 //! payload postcard encoding of five byte strings (varint length + bytes each):
 //!   points       12 bytes per point: x, y, z as f32
 //!   cameras      73 bytes per camera: COLMAP model id u8, width u32, height u32,
@@ -21,7 +21,7 @@
 //! ```
 //!
 //! Version 1 had no names (72-byte views, four byte strings); it is refused with
-//! [`Error::MapVersionMismatch`]: rebuild the map with `gomatch-sim map build`.
+//! [`Error::BlobVersion`]: rebuild the map with `gomatch-sim map build`.
 //!
 //! [`Map::from_bytes`] checks everything once (header, checksum, record sizes, every index,
 //! every camera and pose), so the accessors afterwards cannot meet a bad record.
@@ -31,15 +31,11 @@ use serde::ser::{SerializeSeq, SerializeTuple};
 use serde::{Deserialize, Serialize, Serializer};
 
 use crate::camera::{Camera, CameraModel};
-use crate::error::{Error, Input, MapItem, Result};
+use crate::envelope;
+use crate::error::{BlobKind, Error, Input, MapItem, Result};
 use crate::pose::Pose;
 
-/// First four bytes of every map blob.
-pub const MAP_MAGIC: [u8; 4] = *b"GMAP";
-/// Format version this code reads and writes.
-pub const MAP_VERSION: u16 = 2;
-/// Size of the fixed header.
-pub const HEADER_BYTES: usize = 16;
+pub use crate::envelope::{HEADER_BYTES, MAP_MAGIC, MAP_VERSION};
 /// Bytes per stored 3D point.
 pub const POINT_BYTES: usize = 12;
 /// Bytes per stored camera.
@@ -48,34 +44,6 @@ pub const CAMERA_BYTES: usize = 1 + 4 + 4 + 8 * 8;
 pub const VIEW_BYTES: usize = 4 + 4 + 7 * 8 + 4 + 4 + 4 + 4;
 /// Bytes per stored observation (point index).
 pub const INDEX_BYTES: usize = 4;
-
-/// CRC-32 (IEEE 802.3, reflected, as in zlib) lookup table.
-const CRC_TABLE: [u32; 256] = {
-    let mut table = [0u32; 256];
-    let mut i = 0;
-    while i < 256 {
-        let mut c = i as u32;
-        let mut bit = 0;
-        while bit < 8 {
-            c = if c & 1 != 0 {
-                0xEDB8_8320 ^ (c >> 1)
-            } else {
-                c >> 1
-            };
-            bit += 1;
-        }
-        table[i] = c;
-        i += 1;
-    }
-    table
-};
-
-/// CRC-32 (IEEE) of `bytes`.
-pub fn crc32(bytes: &[u8]) -> u32 {
-    !bytes.iter().fold(!0u32, |crc, &b| {
-        CRC_TABLE[usize::from((crc as u8) ^ b)] ^ (crc >> 8)
-    })
-}
 
 fn array<const N: usize>(bytes: &[u8], offset: usize) -> Option<[u8; N]> {
     bytes
@@ -202,47 +170,16 @@ pub struct Map<'a> {
 
 impl<'a> Map<'a> {
     /// Reads and validates a map blob without copying it. Fails with
-    /// [`Error::MapTruncated`], [`Error::MapBadMagic`], [`Error::MapVersionMismatch`],
-    /// [`Error::MapChecksumMismatch`], [`Error::MapCorrupt`] (undecodable payload, record
+    /// an envelope error ([`crate::envelope::open`]), [`Error::MapMalformed`] (undecodable payload, record
     /// sizes, trailing bytes, a name outside the name list or not UTF-8),
     /// [`Error::MapIndexOutOfRange`], [`Error::InvalidIntrinsics`]
     /// or [`Error::NonFinite`].
     pub fn from_bytes(blob: &'a [u8]) -> Result<Self> {
-        let header: [u8; HEADER_BYTES] = array(blob, 0).ok_or(Error::MapTruncated {
-            needed: HEADER_BYTES,
-            found: blob.len(),
-        })?;
-        if header[..4] != MAP_MAGIC {
-            return Err(Error::MapBadMagic);
-        }
-        let version = u16::from_le_bytes([header[4], header[5]]);
-        if version != MAP_VERSION {
-            return Err(Error::MapVersionMismatch {
-                expected: MAP_VERSION,
-                found: version,
-            });
-        }
-        let payload_len = u32::from_le_bytes([header[8], header[9], header[10], header[11]]);
-        let stored = u32::from_le_bytes([header[12], header[13], header[14], header[15]]);
-        let payload = &blob[HEADER_BYTES..];
-        let needed = HEADER_BYTES.saturating_add(payload_len as usize);
-        if payload.len() < payload_len as usize {
-            return Err(Error::MapTruncated {
-                needed,
-                found: blob.len(),
-            });
-        }
-        if payload.len() > payload_len as usize || header[6..8] != [0, 0] {
-            return Err(Error::MapCorrupt);
-        }
-        let computed = crc32(payload);
-        if computed != stored {
-            return Err(Error::MapChecksumMismatch { stored, computed });
-        }
+        let payload = envelope::open(BlobKind::Map, blob)?;
         let (decoded, rest): (PayloadRef<'a>, &[u8]) =
-            postcard::take_from_bytes(payload).map_err(|_| Error::MapCorrupt)?;
+            postcard::take_from_bytes(payload).map_err(|_| Error::MapMalformed)?;
         if !rest.is_empty() {
-            return Err(Error::MapCorrupt);
+            return Err(Error::MapMalformed);
         }
         let map = Map {
             points: decoded.points,
@@ -263,7 +200,7 @@ impl<'a> Map<'a> {
             (self.view_points, INDEX_BYTES),
         ];
         if sizes.iter().any(|(bytes, size)| bytes.len() % size != 0) {
-            return Err(Error::MapCorrupt);
+            return Err(Error::MapMalformed);
         }
         for index in 0..self.point_count() {
             if !self.point(index)?.iter().all(|v| v.is_finite()) {
@@ -363,11 +300,11 @@ impl<'a> Map<'a> {
             .and_then(|range| self.cameras.get(range))
             .ok_or(Self::out_of_range(MapItem::Camera, index, limit))?;
         let model = CameraModel::from_colmap_id(i32::from(record[0]))?;
-        let width = u32_at(record, 1).ok_or(Error::MapCorrupt)?;
-        let height = u32_at(record, 5).ok_or(Error::MapCorrupt)?;
+        let width = u32_at(record, 1).ok_or(Error::MapMalformed)?;
+        let height = u32_at(record, 5).ok_or(Error::MapMalformed)?;
         let mut params = [0.0; 8];
         for (i, p) in params.iter_mut().enumerate() {
-            *p = f64_at(record, 9 + 8 * i).ok_or(Error::MapCorrupt)?;
+            *p = f64_at(record, 9 + 8 * i).ok_or(Error::MapMalformed)?;
         }
         let count = model.param_count();
         Camera::from_colmap(model, width, height, &params[..count])
@@ -382,17 +319,17 @@ impl<'a> Map<'a> {
         let record = entry_range::<usize>(index, 1usize, VIEW_BYTES)
             .and_then(|range| self.views.get(range))
             .ok_or(Self::out_of_range(MapItem::View, index, limit))?;
-        let value = |i: usize| f64_at(record, 8 + 8 * i).ok_or(Error::MapCorrupt);
+        let value = |i: usize| f64_at(record, 8 + 8 * i).ok_or(Error::MapMalformed);
         let q = [value(0)?, value(1)?, value(2)?, value(3)?];
         let t = [value(4)?, value(5)?, value(6)?];
         Ok(MapView {
-            image_id: u32_at(record, 0).ok_or(Error::MapCorrupt)?,
-            camera_index: u32_at(record, 4).ok_or(Error::MapCorrupt)?,
+            image_id: u32_at(record, 0).ok_or(Error::MapMalformed)?,
+            camera_index: u32_at(record, 4).ok_or(Error::MapMalformed)?,
             pose: Pose::from_colmap(q, t)?,
-            first: u32_at(record, 64).ok_or(Error::MapCorrupt)?,
-            count: u32_at(record, 68).ok_or(Error::MapCorrupt)?,
-            name_first: u32_at(record, 72).ok_or(Error::MapCorrupt)?,
-            name_len: u32_at(record, 76).ok_or(Error::MapCorrupt)?,
+            first: u32_at(record, 64).ok_or(Error::MapMalformed)?,
+            count: u32_at(record, 68).ok_or(Error::MapMalformed)?,
+            name_first: u32_at(record, 72).ok_or(Error::MapMalformed)?,
+            name_len: u32_at(record, 76).ok_or(Error::MapMalformed)?,
         })
     }
 
@@ -406,8 +343,8 @@ impl<'a> Map<'a> {
         let bytes = start
             .checked_add(view.name_len as usize)
             .and_then(|end| self.names.get(start..end))
-            .ok_or(Error::MapCorrupt)?;
-        core::str::from_utf8(bytes).map_err(|_| Error::MapCorrupt)
+            .ok_or(Error::MapMalformed)?;
+        core::str::from_utf8(bytes).map_err(|_| Error::MapMalformed)
     }
 
     /// The point indices view `index` observes.
@@ -712,7 +649,7 @@ pub fn encode(
             }
         },
     };
-    let (header, payload) = out.split_at_mut(HEADER_BYTES);
+    let payload = out.get_mut(HEADER_BYTES..).unwrap_or(&mut []);
     let capacity = payload.len();
     let payload_len = {
         let tuple = Payload(
@@ -729,13 +666,7 @@ pub fn encode(
             })?
             .len()
     };
-    let checksum = crc32(&payload[..payload_len]);
-    header[..4].copy_from_slice(&MAP_MAGIC);
-    header[4..6].copy_from_slice(&MAP_VERSION.to_le_bytes());
-    header[6..8].copy_from_slice(&[0, 0]);
-    header[8..12].copy_from_slice(&(payload_len as u32).to_le_bytes());
-    header[12..16].copy_from_slice(&checksum.to_le_bytes());
-    Ok(HEADER_BYTES + payload_len)
+    envelope::seal(BlobKind::Map, out, payload_len)
 }
 
 /// The payload's five byte strings in order.
@@ -827,12 +758,6 @@ mod tests {
     }
 
     #[test]
-    fn crc32_matches_the_standard_check_value() {
-        assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
-        assert_eq!(crc32(b""), 0);
-    }
-
-    #[test]
     fn map_round_trips_in_place() {
         let mut buffer = [0u8; 1024];
         let len = encode_sample(&mut buffer);
@@ -895,14 +820,16 @@ mod tests {
         let blob = &buffer[..len];
         assert_eq!(
             Map::from_bytes(&blob[..10]),
-            Err(Error::MapTruncated {
+            Err(Error::BlobTruncated {
+                blob: BlobKind::Map,
                 needed: 16,
                 found: 10
             })
         );
         assert_eq!(
             Map::from_bytes(&blob[..len - 1]),
-            Err(Error::MapTruncated {
+            Err(Error::BlobTruncated {
+                blob: BlobKind::Map,
                 needed: len,
                 found: len - 1
             })
@@ -910,13 +837,20 @@ mod tests {
         let mut copy = [0u8; 1024];
         copy[..len].copy_from_slice(blob);
         copy[0] = b'X';
-        assert_eq!(Map::from_bytes(&copy[..len]), Err(Error::MapBadMagic));
+        assert_eq!(
+            Map::from_bytes(&copy[..len]),
+            Err(Error::BlobMagic {
+                blob: BlobKind::Map,
+                found: *b"XMAP"
+            })
+        );
         copy[..len].copy_from_slice(blob);
         // A version-1 map (no names) is refused by its version.
         copy[4] = 1;
         assert_eq!(
             Map::from_bytes(&copy[..len]),
-            Err(Error::MapVersionMismatch {
+            Err(Error::BlobVersion {
+                blob: BlobKind::Map,
                 expected: 2,
                 found: 1
             })
@@ -925,15 +859,24 @@ mod tests {
         copy[len - 3] ^= 0x40;
         assert!(matches!(
             Map::from_bytes(&copy[..len]),
-            Err(Error::MapChecksumMismatch { .. })
+            Err(Error::BlobChecksum {
+                blob: BlobKind::Map,
+                ..
+            })
         ));
-        assert_eq!(Map::from_bytes(&copy[..len + 1]), Err(Error::MapCorrupt));
+        copy[..len].copy_from_slice(blob);
+        assert_eq!(
+            Map::from_bytes(&copy[..len + 1]),
+            Err(Error::BlobHeader {
+                blob: BlobKind::Map
+            })
+        );
     }
 
     /// Rewrites the checksum so that a deliberately corrupted payload gets past it.
     fn reseal(blob: &mut [u8]) {
-        let checksum = crc32(&blob[HEADER_BYTES..]);
-        blob[12..16].copy_from_slice(&checksum.to_le_bytes());
+        let payload = blob.len() - HEADER_BYTES;
+        envelope::seal(BlobKind::Map, blob, payload).expect("fits");
     }
 
     #[test]
@@ -959,13 +902,13 @@ mod tests {
         assert_eq!(buffer[HEADER_BYTES], 48);
         buffer[HEADER_BYTES] = 49;
         reseal(&mut buffer[..len]);
-        assert_eq!(Map::from_bytes(&buffer[..len]), Err(Error::MapCorrupt));
+        assert_eq!(Map::from_bytes(&buffer[..len]), Err(Error::MapMalformed));
         // A name that is not UTF-8, and a name range past the name list.
         let mut buffer = [0u8; 1024];
         let len = encode_sample(&mut buffer);
         buffer[len - 1] = 0xFF;
         reseal(&mut buffer[..len]);
-        assert_eq!(Map::from_bytes(&buffer[..len]), Err(Error::MapCorrupt));
+        assert_eq!(Map::from_bytes(&buffer[..len]), Err(Error::MapMalformed));
         let mut buffer = [0u8; 1024];
         let len = encode_sample(&mut buffer);
         let views_start = len - (14 + 1) - (5 * INDEX_BYTES + 1) - 3 * VIEW_BYTES;
@@ -973,7 +916,7 @@ mod tests {
         assert_eq!(buffer[second_name_len], 9);
         buffer[second_name_len] = 10;
         reseal(&mut buffer[..len]);
-        assert_eq!(Map::from_bytes(&buffer[..len]), Err(Error::MapCorrupt));
+        assert_eq!(Map::from_bytes(&buffer[..len]), Err(Error::MapMalformed));
     }
 
     #[test]

@@ -4,11 +4,10 @@
 //! host); no tensor is copied into RAM. Layout, all integers little-endian:
 //!
 //! ```text
-//! [0..4)      magic  b"GMWB"
-//! [4..6)      format version (u16), see FORMAT_VERSION
-//! [6..len-4)  postcard: BlobHeader { config, precision, tensor_count }
+//! [0..16)     the blob envelope (crate::envelope): magic b"GMWB", MODEL_VERSION,
+//!             payload length, CRC-32 of the payload
+//! [16..)      payload, postcard: BlobHeader { config, precision, tensor_count }
 //!             then tensor_count x postcard TensorRecord { rows, cols, weights, scales, bias }
-//! [len-4..)   CRC-32 (IEEE) of bytes [0..len-4)
 //! ```
 //!
 //! Tensors come in the fixed order of [`tensor_spec`], derived from the configuration, and
@@ -28,22 +27,14 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::envelope::{self, HEADER_BYTES};
+pub use crate::envelope::{MODEL_MAGIC, MODEL_VERSION};
+use crate::error::{BlobKind, Error, Result};
 pub use crate::error::{ConfigField, TensorName, TensorPart};
-use crate::error::{Error, Result};
 pub use crate::limits::{
     MAX_CLASSIFIER_BLOCKS, MAX_ENCODER_BLOCKS, MAX_FEATURE_DIM, MAX_HEADS, MAX_KNN,
     MAX_SINKHORN_ITERS, SELF_LAYERS,
 };
-
-/// First four bytes of every model blob.
-pub const MAGIC: [u8; 4] = *b"GMWB";
-/// Version of the blob layout this build reads.
-pub const FORMAT_VERSION: u16 = 2;
-
-/// Bytes before the postcard payload: magic and version.
-const PREAMBLE: usize = 6;
-/// Bytes of the trailing checksum.
-const CHECKSUM_BYTES: usize = 4;
 
 /// Storage precision of the weight matrices.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -236,71 +227,174 @@ const fn spec(
     }
 }
 
-/// Number of tensors a blob with this configuration holds.
-pub fn tensor_count(config: &ModelConfig) -> usize {
-    1 + RESIDUAL_BLOCK_TENSORS * usize::from(config.encoder_blocks)
-        + 5 * SELF_LAYERS
-        + 6
-        + 1
-        + RESIDUAL_BLOCK_TENSORS * usize::from(config.classifier_blocks)
-        + 1
+/// A tensor dimension in units of the configuration's widths.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Width {
+    /// A fixed number of channels.
+    Fixed(usize),
+    /// A multiple of the feature width `d`.
+    Features(usize),
+    /// A multiple of the classifier width `c`.
+    Classifier(usize),
 }
 
-/// Name and shape of tensor `index` in blob order, or `None` past the last one.
-///
-/// Order: encoder input, encoder blocks (preconv, conv1, conv2), self layer 0 and 1 (edge1 centre,
-/// edge1 neighbour, edge2 centre, edge2 neighbour, fuse), cross layer (query, key, value,
-/// merge, mlp_hidden, mlp_out), classifier input, classifier blocks, classifier output.
-pub fn tensor_spec(config: &ModelConfig, index: usize) -> Option<TensorSpec> {
-    let d = usize::from(config.feature_dim);
-    let c = usize::from(config.classifier_dim);
-    let eb = usize::from(config.encoder_blocks);
-    let cb = usize::from(config.classifier_blocks);
+impl Width {
+    /// Channels under `config`.
+    pub fn channels(self, config: &ModelConfig) -> usize {
+        match self {
+            Width::Fixed(n) => n,
+            Width::Features(m) => m * usize::from(config.feature_dim),
+            Width::Classifier(m) => m * usize::from(config.classifier_dim),
+        }
+    }
+}
+
+/// One tensor of a layer: its role (name in errors and reports), output and input
+/// channels, and whether it has a bias.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LayerTensor {
+    /// Role, e.g. `self.fuse`.
+    pub role: &'static str,
+    /// Output channels.
+    pub rows: Width,
+    /// Input channels.
+    pub cols: Width,
+    /// Whether it carries a bias.
+    pub bias: bool,
+}
+
+const fn tensor(role: &'static str, rows: Width, cols: Width, bias: bool) -> LayerTensor {
+    LayerTensor {
+        role,
+        rows,
+        cols,
+        bias,
+    }
+}
+
+/// The layers of a model blob in blob order, each repeated [`Section::repeats`] times and
+/// holding [`Section::tensors`]: the one declaration of the blob layout, read by the
+/// loader ([`Model::from_bytes`]), the converter and its calibration pass (`gomatch-tools`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Section {
+    /// The encoder's input convolution (supp. "Feature Encoder").
+    EncoderInput,
+    /// An encoder residual block.
+    EncoderBlock,
+    /// An EdgeConv self-attention layer (attention layers 0 and 2).
+    SelfLayer,
+    /// The cross-attention layer (attention layer 1).
+    CrossLayer,
+    /// The classifier's input convolution on `[f2d, f3d]`.
+    ClassifierInput,
+    /// A classifier residual block.
+    ClassifierBlock,
+    /// The classifier's output convolution.
+    ClassifierOutput,
+}
+
+impl Section {
+    /// Blob order.
+    pub const ORDER: [Section; 7] = [
+        Section::EncoderInput,
+        Section::EncoderBlock,
+        Section::SelfLayer,
+        Section::CrossLayer,
+        Section::ClassifierInput,
+        Section::ClassifierBlock,
+        Section::ClassifierOutput,
+    ];
+
+    /// The tensors of one instance, in blob order.
+    pub const fn tensors(self) -> &'static [LayerTensor] {
+        match self {
+            Section::EncoderInput => &EncoderWeights::INPUT_TENSORS,
+            Section::EncoderBlock => &ResidualBlockWeights::ENCODER_TENSORS,
+            Section::SelfLayer => &SelfLayerWeights::TENSORS,
+            Section::CrossLayer => &CrossLayerWeights::TENSORS,
+            Section::ClassifierInput => &ClassifierWeights::INPUT_TENSORS,
+            Section::ClassifierBlock => &ResidualBlockWeights::CLASSIFIER_TENSORS,
+            Section::ClassifierOutput => &ClassifierWeights::OUTPUT_TENSORS,
+        }
+    }
+
+    /// Instances of the section under `config`.
+    pub fn repeats(self, config: &ModelConfig) -> usize {
+        match self {
+            Section::EncoderBlock => usize::from(config.encoder_blocks),
+            Section::SelfLayer => SELF_LAYERS,
+            Section::ClassifierBlock => usize::from(config.classifier_blocks),
+            _ => 1,
+        }
+    }
+
+    fn len(self, config: &ModelConfig) -> usize {
+        self.tensors().len() * self.repeats(config)
+    }
+}
+
+/// Where a tensor sits in the layout: `part` of instance `instance` of `section`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TensorSlot {
+    /// The layer kind.
+    pub section: Section,
+    /// Which repetition (block or layer index).
+    pub instance: usize,
+    /// Position in [`Section::tensors`].
+    pub part: usize,
+}
+
+/// The slot of tensor `index` (blob order), or `None` past the last one.
+pub fn locate(config: &ModelConfig, index: usize) -> Option<TensorSlot> {
     let mut i = index;
-    if i == 0 {
-        return Some(spec("encoder.input", 0, d, 2, true));
-    }
-    i -= 1;
-    if i < RESIDUAL_BLOCK_TENSORS * eb {
-        let (block, role) = (i / RESIDUAL_BLOCK_TENSORS, i % RESIDUAL_BLOCK_TENSORS);
-        return Some(spec(BLOCK_ROLES[0][role], block, d, d, true));
-    }
-    i -= RESIDUAL_BLOCK_TENSORS * eb;
-    if i < 5 * SELF_LAYERS {
-        let layer = i / 5;
-        return Some(match i % 5 {
-            0 => spec("self.edge1_centre", layer, d, d, false),
-            1 => spec("self.edge1_neighbour", layer, d, d, false),
-            2 => spec("self.edge2_centre", layer, 2 * d, d, false),
-            3 => spec("self.edge2_neighbour", layer, 2 * d, d, false),
-            _ => spec("self.fuse", layer, d, 4 * d, false),
-        });
-    }
-    i -= 5 * SELF_LAYERS;
-    if i < 6 {
-        return Some(match i {
-            0 => spec("cross.query", 0, d, d, true),
-            1 => spec("cross.key", 0, d, d, true),
-            2 => spec("cross.value", 0, d, d, true),
-            3 => spec("cross.merge", 0, d, d, true),
-            4 => spec("cross.mlp_hidden", 0, 2 * d, 2 * d, false),
-            _ => spec("cross.mlp_out", 0, d, 2 * d, true),
-        });
-    }
-    i -= 6;
-    if i == 0 {
-        return Some(spec("classifier.input", 0, c, 2 * d, true));
-    }
-    i -= 1;
-    if i < RESIDUAL_BLOCK_TENSORS * cb {
-        let (block, role) = (i / RESIDUAL_BLOCK_TENSORS, i % RESIDUAL_BLOCK_TENSORS);
-        return Some(spec(BLOCK_ROLES[1][role], block, c, c, true));
-    }
-    i -= RESIDUAL_BLOCK_TENSORS * cb;
-    if i == 0 {
-        return Some(spec("classifier.output", 0, 1, c, true));
+    for section in Section::ORDER {
+        let per = section.tensors().len();
+        if i < section.len(config) {
+            return Some(TensorSlot {
+                section,
+                instance: i / per,
+                part: i % per,
+            });
+        }
+        i -= section.len(config);
     }
     None
+}
+
+/// Blob index of `part` of instance `instance` of `section`, or `None` when the
+/// configuration has no such tensor.
+pub fn tensor_index(
+    config: &ModelConfig,
+    section: Section,
+    instance: usize,
+    part: usize,
+) -> Option<usize> {
+    let before: usize = Section::ORDER
+        .iter()
+        .take_while(|&&s| s != section)
+        .map(|s| s.len(config))
+        .sum();
+    let per = section.tensors().len();
+    (instance < section.repeats(config) && part < per).then_some(before + instance * per + part)
+}
+
+/// Number of tensors a blob with this configuration holds.
+pub fn tensor_count(config: &ModelConfig) -> usize {
+    Section::ORDER.iter().map(|s| s.len(config)).sum()
+}
+
+/// Name and shape of tensor `index` in blob order ([`Section::ORDER`]), or `None` past
+/// the last one.
+pub fn tensor_spec(config: &ModelConfig, index: usize) -> Option<TensorSpec> {
+    let slot = locate(config, index)?;
+    let t = slot.section.tensors().get(slot.part)?;
+    Some(spec(
+        t.role,
+        slot.instance,
+        t.rows.channels(config),
+        t.cols.channels(config),
+        t.bias,
+    ))
 }
 
 /// A per-point linear layer `y = s * (W x) + b` borrowed from the blob.
@@ -386,20 +480,6 @@ fn read_f32(bytes: &[u8], index: usize) -> Option<f32> {
 /// Tensors of one residual block in the blob: preconv, conv1, conv2.
 pub const RESIDUAL_BLOCK_TENSORS: usize = 3;
 
-/// Tensor roles of a residual block's convolutions, in blob order: encoder, classifier.
-const BLOCK_ROLES: [[&str; RESIDUAL_BLOCK_TENSORS]; 2] = [
-    [
-        "encoder.block.preconv",
-        "encoder.block.conv1",
-        "encoder.block.conv2",
-    ],
-    [
-        "classifier.block.preconv",
-        "classifier.block.conv1",
-        "classifier.block.conv2",
-    ],
-];
-
 /// One residual block of a point ResNet (supp. Fig. "Residual Block"), as the reference
 /// stores it: `preconv`, `conv1`, `conv2`, each with its bias.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -419,9 +499,52 @@ impl<'a> ResidualBlockWeights<'a> {
         conv2: Linear::EMPTY,
     };
 
-    /// The convolution at position `role` (< [`RESIDUAL_BLOCK_TENSORS`]) of the block.
-    fn slot(&mut self, role: usize) -> &mut Linear<'a> {
-        match role {
+    /// An encoder block's tensors in blob order (d -> d, with bias).
+    pub const ENCODER_TENSORS: [LayerTensor; RESIDUAL_BLOCK_TENSORS] = [
+        tensor(
+            "encoder.block.preconv",
+            Width::Features(1),
+            Width::Features(1),
+            true,
+        ),
+        tensor(
+            "encoder.block.conv1",
+            Width::Features(1),
+            Width::Features(1),
+            true,
+        ),
+        tensor(
+            "encoder.block.conv2",
+            Width::Features(1),
+            Width::Features(1),
+            true,
+        ),
+    ];
+    /// A classifier block's tensors in blob order (c -> c, with bias).
+    pub const CLASSIFIER_TENSORS: [LayerTensor; RESIDUAL_BLOCK_TENSORS] = [
+        tensor(
+            "classifier.block.preconv",
+            Width::Classifier(1),
+            Width::Classifier(1),
+            true,
+        ),
+        tensor(
+            "classifier.block.conv1",
+            Width::Classifier(1),
+            Width::Classifier(1),
+            true,
+        ),
+        tensor(
+            "classifier.block.conv2",
+            Width::Classifier(1),
+            Width::Classifier(1),
+            true,
+        ),
+    ];
+
+    /// The convolution at position `part` of the block's tensors.
+    fn slot(&mut self, part: usize) -> &mut Linear<'a> {
+        match part {
             0 => &mut self.preconv,
             1 => &mut self.conv1,
             _ => &mut self.conv2,
@@ -455,6 +578,63 @@ pub struct SelfLayerWeights<'a> {
     pub fuse: Linear<'a>,
 }
 
+impl EncoderWeights<'_> {
+    /// `conv_in` (2 -> d, with bias).
+    pub const INPUT_TENSORS: [LayerTensor; 1] = [tensor(
+        "encoder.input",
+        Width::Features(1),
+        Width::Fixed(2),
+        true,
+    )];
+}
+
+impl<'a> SelfLayerWeights<'a> {
+    /// Part of [`Self::TENSORS`]: first edge conv, centre (the neighbour part follows).
+    pub const EDGE1: usize = 0;
+    /// Part of [`Self::TENSORS`]: second edge conv, centre (the neighbour part follows).
+    pub const EDGE2: usize = 2;
+    /// Part of [`Self::TENSORS`]: the fusing conv.
+    pub const FUSE: usize = 4;
+    /// Its tensors in blob order.
+    pub const TENSORS: [LayerTensor; 5] = [
+        tensor(
+            "self.edge1_centre",
+            Width::Features(1),
+            Width::Features(1),
+            false,
+        ),
+        tensor(
+            "self.edge1_neighbour",
+            Width::Features(1),
+            Width::Features(1),
+            false,
+        ),
+        tensor(
+            "self.edge2_centre",
+            Width::Features(2),
+            Width::Features(1),
+            false,
+        ),
+        tensor(
+            "self.edge2_neighbour",
+            Width::Features(2),
+            Width::Features(1),
+            false,
+        ),
+        tensor("self.fuse", Width::Features(1), Width::Features(4), false),
+    ];
+
+    fn slot(&mut self, part: usize) -> &mut Linear<'a> {
+        match part {
+            0 => &mut self.edge1_centre,
+            1 => &mut self.edge1_neighbour,
+            2 => &mut self.edge2_centre,
+            3 => &mut self.edge2_neighbour,
+            _ => &mut self.fuse,
+        }
+    }
+}
+
 /// Weights of the multi-head cross-attention layer (supp. eq. 6-8).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CrossLayerWeights<'a> {
@@ -472,6 +652,43 @@ pub struct CrossLayerWeights<'a> {
     pub mlp_out: Linear<'a>,
 }
 
+impl<'a> CrossLayerWeights<'a> {
+    /// Part of [`Self::TENSORS`]: the query projection (key, value, merge follow).
+    pub const QUERY: usize = 0;
+    /// Part of [`Self::TENSORS`]: the message MLP's hidden layer (its output follows).
+    pub const MLP_HIDDEN: usize = 4;
+    /// Its tensors in blob order.
+    pub const TENSORS: [LayerTensor; 6] = [
+        tensor("cross.query", Width::Features(1), Width::Features(1), true),
+        tensor("cross.key", Width::Features(1), Width::Features(1), true),
+        tensor("cross.value", Width::Features(1), Width::Features(1), true),
+        tensor("cross.merge", Width::Features(1), Width::Features(1), true),
+        tensor(
+            "cross.mlp_hidden",
+            Width::Features(2),
+            Width::Features(2),
+            false,
+        ),
+        tensor(
+            "cross.mlp_out",
+            Width::Features(1),
+            Width::Features(2),
+            true,
+        ),
+    ];
+
+    fn slot(&mut self, part: usize) -> &mut Linear<'a> {
+        match part {
+            0 => &mut self.query,
+            1 => &mut self.key,
+            2 => &mut self.value,
+            3 => &mut self.merge,
+            4 => &mut self.mlp_hidden,
+            _ => &mut self.mlp_out,
+        }
+    }
+}
+
 /// Weights of the outlier classifier (supp. "Outlier Rejection").
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ClassifierWeights<'a> {
@@ -483,6 +700,23 @@ pub struct ClassifierWeights<'a> {
     pub count: usize,
     /// `conv_out`: c -> 1 with bias, then sigmoid.
     pub output: Linear<'a>,
+}
+
+impl ClassifierWeights<'_> {
+    /// `conv_in` (2d -> c, with bias).
+    pub const INPUT_TENSORS: [LayerTensor; 1] = [tensor(
+        "classifier.input",
+        Width::Classifier(1),
+        Width::Features(2),
+        true,
+    )];
+    /// `conv_out` (c -> 1, with bias).
+    pub const OUTPUT_TENSORS: [LayerTensor; 1] = [tensor(
+        "classifier.output",
+        Width::Fixed(1),
+        Width::Classifier(1),
+        true,
+    )];
 }
 
 /// A loaded model: configuration and borrowed, shape-checked tensors.
@@ -504,9 +738,12 @@ impl<'a> Model<'a> {
     /// Parses and validates a blob in place: magic, version, checksum, configuration
     /// against the compiled maximums, then every tensor's shape and byte length.
     pub fn from_bytes(blob: &'a [u8]) -> Result<Model<'a>> {
-        let payload = check_envelope(blob)?;
+        let payload = envelope::open(BlobKind::Model, blob)?;
+        let offset_of = |rest: &[u8]| HEADER_BYTES + payload.len() - rest.len();
         let (header, mut rest): (BlobHeader, &'a [u8]) = postcard::take_from_bytes(payload)
-            .map_err(|_| Error::BlobMalformed { offset: PREAMBLE })?;
+            .map_err(|_| Error::ModelMalformed {
+                offset: HEADER_BYTES,
+            })?;
         header.config.validate()?;
         let expected = tensor_count(&header.config);
         if usize::from(header.tensor_count) != expected {
@@ -546,9 +783,9 @@ impl<'a> Model<'a> {
             },
         };
         for index in 0..expected {
-            let offset = blob.len() - CHECKSUM_BYTES - rest.len();
+            let offset = offset_of(rest);
             let (record, tail): (TensorRecord<'a>, &'a [u8]) =
-                postcard::take_from_bytes(rest).map_err(|_| Error::BlobMalformed { offset })?;
+                postcard::take_from_bytes(rest).map_err(|_| Error::ModelMalformed { offset })?;
             rest = tail;
             // `index < expected` so the spec exists.
             let Some(spec) = tensor_spec(&header.config, index) else {
@@ -561,8 +798,8 @@ impl<'a> Model<'a> {
             model.place(index, linear);
         }
         if !rest.is_empty() {
-            return Err(Error::BlobMalformed {
-                offset: blob.len() - CHECKSUM_BYTES - rest.len(),
+            return Err(Error::ModelMalformed {
+                offset: offset_of(rest),
             });
         }
         Ok(model)
@@ -578,89 +815,33 @@ impl<'a> Model<'a> {
         self.precision
     }
 
-    /// Puts tensor `index` (blob order of [`tensor_spec`]) in its slot.
+    /// Puts tensor `index` (blob order, [`locate`]) in its slot.
     fn place(&mut self, index: usize, linear: Linear<'a>) {
-        let eb = self.encoder.count;
-        let cb = self.classifier.count;
-        let mut i = index;
-        if i == 0 {
-            self.encoder.input = linear;
+        let Some(TensorSlot {
+            section,
+            instance,
+            part,
+        }) = locate(&self.config, index)
+        else {
             return;
+        };
+        let slot = match section {
+            Section::EncoderInput => Some(&mut self.encoder.input),
+            Section::EncoderBlock => self.encoder.blocks.get_mut(instance).map(|b| b.slot(part)),
+            Section::SelfLayer => self.self_layers.get_mut(instance).map(|l| l.slot(part)),
+            Section::CrossLayer => Some(self.cross.slot(part)),
+            Section::ClassifierInput => Some(&mut self.classifier.input),
+            Section::ClassifierBlock => self
+                .classifier
+                .blocks
+                .get_mut(instance)
+                .map(|b| b.slot(part)),
+            Section::ClassifierOutput => Some(&mut self.classifier.output),
+        };
+        if let Some(slot) = slot {
+            *slot = linear;
         }
-        i -= 1;
-        if i < RESIDUAL_BLOCK_TENSORS * eb {
-            let block = &mut self.encoder.blocks[i / RESIDUAL_BLOCK_TENSORS];
-            *block.slot(i % RESIDUAL_BLOCK_TENSORS) = linear;
-            return;
-        }
-        i -= RESIDUAL_BLOCK_TENSORS * eb;
-        if i < 5 * SELF_LAYERS {
-            let layer = &mut self.self_layers[i / 5];
-            match i % 5 {
-                0 => layer.edge1_centre = linear,
-                1 => layer.edge1_neighbour = linear,
-                2 => layer.edge2_centre = linear,
-                3 => layer.edge2_neighbour = linear,
-                _ => layer.fuse = linear,
-            }
-            return;
-        }
-        i -= 5 * SELF_LAYERS;
-        if i < 6 {
-            let cross = &mut self.cross;
-            match i {
-                0 => cross.query = linear,
-                1 => cross.key = linear,
-                2 => cross.value = linear,
-                3 => cross.merge = linear,
-                4 => cross.mlp_hidden = linear,
-                _ => cross.mlp_out = linear,
-            }
-            return;
-        }
-        i -= 6;
-        if i == 0 {
-            self.classifier.input = linear;
-            return;
-        }
-        i -= 1;
-        if i < RESIDUAL_BLOCK_TENSORS * cb {
-            let block = &mut self.classifier.blocks[i / RESIDUAL_BLOCK_TENSORS];
-            *block.slot(i % RESIDUAL_BLOCK_TENSORS) = linear;
-            return;
-        }
-        self.classifier.output = linear;
     }
-}
-
-/// Checks length, magic, version and checksum; returns the postcard payload.
-fn check_envelope(blob: &[u8]) -> Result<&[u8]> {
-    let minimum = PREAMBLE + CHECKSUM_BYTES;
-    if blob.len() < minimum {
-        return Err(Error::BlobTruncated {
-            needed: minimum,
-            found: blob.len(),
-        });
-    }
-    let magic = [blob[0], blob[1], blob[2], blob[3]];
-    if magic != MAGIC {
-        return Err(Error::BlobMagic { found: magic });
-    }
-    let version = u16::from_le_bytes([blob[4], blob[5]]);
-    if version != FORMAT_VERSION {
-        return Err(Error::BlobVersion {
-            expected: FORMAT_VERSION,
-            found: version,
-        });
-    }
-    let body = blob.len() - CHECKSUM_BYTES;
-    let t = &blob[body..];
-    let stored = u32::from_le_bytes([t[0], t[1], t[2], t[3]]);
-    let computed = crc32(&blob[..body]);
-    if stored != computed {
-        return Err(Error::BlobChecksum { stored, computed });
-    }
-    Ok(&blob[PREAMBLE..body])
 }
 
 /// Checks one record (at byte `offset` of the blob) against its expected shape and byte
@@ -684,7 +865,7 @@ fn check_record<'a>(
     let bytes = |count: Option<usize>, per_entry: usize| {
         count
             .and_then(|c| c.checked_mul(per_entry))
-            .ok_or(Error::BlobMalformed { offset })
+            .ok_or(Error::ModelMalformed { offset })
     };
     let row_values = bytes(Some(rows), 4)?;
     let lengths = [
@@ -728,51 +909,9 @@ fn check_record<'a>(
     })
 }
 
-/// Lookup table of the reflected CRC-32 (IEEE 802.3, polynomial 0xEDB88320).
-const CRC_TABLE: [u32; 256] = {
-    let mut table = [0u32; 256];
-    let mut i = 0;
-    while i < 256 {
-        let mut c = i as u32;
-        let mut bit = 0;
-        while bit < 8 {
-            c = if c & 1 != 0 {
-                0xEDB8_8320 ^ (c >> 1)
-            } else {
-                c >> 1
-            };
-            bit += 1;
-        }
-        table[i] = c;
-        i += 1;
-    }
-    table
-};
-
-/// CRC-32 (IEEE, as zlib's `crc32`) of `bytes`.
-pub fn crc32(bytes: &[u8]) -> u32 {
-    let mut c = 0xFFFF_FFFFu32;
-    for &b in bytes {
-        c = CRC_TABLE[((c ^ u32::from(b)) & 0xFF) as usize] ^ (c >> 8);
-    }
-    c ^ 0xFFFF_FFFF
-}
-
-/// Preamble (magic and version) every blob starts with.
-pub const fn preamble() -> [u8; PREAMBLE] {
-    let v = FORMAT_VERSION.to_le_bytes();
-    [MAGIC[0], MAGIC[1], MAGIC[2], MAGIC[3], v[0], v[1]]
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn crc32_matches_the_standard_check_value() {
-        assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
-        assert_eq!(crc32(b""), 0);
-    }
 
     #[test]
     fn reference_layout_has_the_reference_parameter_count() {
@@ -794,36 +933,22 @@ mod tests {
     }
 
     #[test]
-    fn envelope_errors_carry_their_numbers() {
+    fn envelope_errors_name_the_model_blob() {
         assert_eq!(
             Model::from_bytes(&[1, 2, 3]),
             Err(Error::BlobTruncated {
-                needed: 10,
+                blob: BlobKind::Model,
+                needed: HEADER_BYTES,
                 found: 3
             })
         );
-        let mut blob = [0u8; 12];
-        blob[..4].copy_from_slice(b"ABCD");
+        let mut map = [0u8; HEADER_BYTES];
+        envelope::seal(BlobKind::Map, &mut map, 0).expect("empty payload");
         assert_eq!(
-            Model::from_bytes(&blob),
-            Err(Error::BlobMagic { found: *b"ABCD" })
-        );
-        blob[..4].copy_from_slice(&MAGIC);
-        blob[4..6].copy_from_slice(&7u16.to_le_bytes());
-        assert_eq!(
-            Model::from_bytes(&blob),
-            Err(Error::BlobVersion {
-                expected: FORMAT_VERSION,
-                found: 7
-            })
-        );
-        blob[4..6].copy_from_slice(&FORMAT_VERSION.to_le_bytes());
-        let computed = crc32(&blob[..8]);
-        assert_eq!(
-            Model::from_bytes(&blob),
-            Err(Error::BlobChecksum {
-                stored: 0,
-                computed
+            Model::from_bytes(&map),
+            Err(Error::BlobMagic {
+                blob: BlobKind::Model,
+                found: *b"GMAP"
             })
         );
     }
@@ -893,14 +1018,10 @@ mod tests {
         assert_eq!(model.classifier.output.cols(), 8);
         assert_eq!(
             Model::from_bytes(&blob[..len - 1]).map(|_| ()),
-            Err(Error::BlobChecksum {
-                stored: u32::from_le_bytes([
-                    blob[len - 5],
-                    blob[len - 4],
-                    blob[len - 3],
-                    blob[len - 2]
-                ]),
-                computed: crc32(&blob[..len - 5]),
+            Err(Error::BlobTruncated {
+                blob: BlobKind::Model,
+                needed: len,
+                found: len - 1,
             })
         );
         let mut flipped = [0u8; 32 * 1024];
@@ -920,9 +1041,7 @@ mod tests {
         // Re-label the header: the same tensors now claim a 2-head, 16-wide model.
         config.feature_dim = 16;
         let mut relabelled = [0u8; 32 * 1024];
-        let pre = preamble();
-        relabelled[..6].copy_from_slice(&pre);
-        let original = postcard::take_from_bytes::<BlobHeader>(&buf[6..len - 4])
+        let original = postcard::take_from_bytes::<BlobHeader>(&buf[HEADER_BYTES..len])
             .expect("header")
             .1;
         let header = BlobHeader {
@@ -930,15 +1049,15 @@ mod tests {
             precision: Precision::F32,
             tensor_count: tensor_count(&config) as u16,
         };
-        let written = postcard::to_slice(&header, &mut relabelled[6..])
+        let written = postcard::to_slice(&header, &mut relabelled[HEADER_BYTES..])
             .expect("fits")
             .len();
-        let body_end = 6 + written + original.len();
-        relabelled[6 + written..body_end].copy_from_slice(original);
-        let crc = crc32(&relabelled[..body_end]);
-        relabelled[body_end..body_end + 4].copy_from_slice(&crc.to_le_bytes());
+        let start = HEADER_BYTES + written;
+        relabelled[start..start + original.len()].copy_from_slice(original);
+        let sealed = envelope::seal(BlobKind::Model, &mut relabelled, written + original.len())
+            .expect("fits");
         assert_eq!(
-            Model::from_bytes(&relabelled[..body_end + 4]),
+            Model::from_bytes(&relabelled[..sealed]),
             Err(Error::TensorShape {
                 tensor: TensorName {
                     role: "encoder.input",
@@ -956,11 +1075,8 @@ mod tests {
         fn arbitrary_bytes_never_panic(body in proptest::collection::vec(proptest::num::u8::ANY, 0..600), envelope: bool) {
             let mut buf = [0u8; 700];
             let len = if envelope {
-                buf[..6].copy_from_slice(&preamble());
-                buf[6..6 + body.len()].copy_from_slice(&body);
-                let crc = crc32(&buf[..6 + body.len()]);
-                buf[6 + body.len()..10 + body.len()].copy_from_slice(&crc.to_le_bytes());
-                10 + body.len()
+                buf[HEADER_BYTES..HEADER_BYTES + body.len()].copy_from_slice(&body);
+                envelope::seal(BlobKind::Model, &mut buf, body.len()).expect("fits")
             } else {
                 buf[..body.len()].copy_from_slice(&body);
                 body.len()
@@ -971,13 +1087,12 @@ mod tests {
         /// A valid blob with any byte changed and the checksum recomputed is either
         /// accepted or refused with an error, never a panic.
         #[test]
-        fn mutated_valid_blobs_never_panic(position in 6usize..4000, value: u8) {
+        fn mutated_valid_blobs_never_panic(position in 0usize..4000, value: u8) {
             let mut buf = [0u8; 32 * 1024];
             let len = tests_support::blob(&tests_support::TINY, 3, &mut buf);
-            let at = position % (len - 10) + 6;
-            buf[at] = value;
-            let crc = crc32(&buf[..len - 4]);
-            buf[len - 4..len].copy_from_slice(&crc.to_le_bytes());
+            let payload = len - HEADER_BYTES;
+            buf[HEADER_BYTES + position % payload] = value;
+            envelope::seal(BlobKind::Model, &mut buf, payload).expect("fits");
             let _ = Model::from_bytes(&buf[..len]);
         }
     }
@@ -1000,8 +1115,8 @@ mod tests {
 #[cfg(test)]
 pub(crate) mod tests_support {
     use super::{
-        crc32, preamble, tensor_count, tensor_spec, BlobHeader, Linear, ModelConfig, Precision,
-        TensorRecord,
+        envelope, tensor_count, tensor_spec, BlobHeader, BlobKind, Linear, ModelConfig, Precision,
+        TensorRecord, HEADER_BYTES,
     };
 
     /// A small configuration for end-to-end tests: d = 8, one block each, 2 heads, k = 3.
@@ -1027,9 +1142,7 @@ pub(crate) mod tests_support {
             state = state.wrapping_mul(747_796_405).wrapping_add(2_891_336_453);
             (state >> 8) as f32 / (1u32 << 24) as f32 - 0.5
         };
-        let pre = preamble();
-        out[..pre.len()].copy_from_slice(&pre);
-        let mut at = pre.len();
+        let mut at = HEADER_BYTES;
         let header = BlobHeader {
             config: *config,
             precision: Precision::F32,
@@ -1063,9 +1176,7 @@ pub(crate) mod tests_support {
                 .unwrap_or(0);
             index += 1;
         }
-        let crc = crc32(&out[..at]);
-        out[at..at + 4].copy_from_slice(&crc.to_le_bytes());
-        at + 4
+        envelope::seal(BlobKind::Model, out, at - HEADER_BYTES).unwrap_or(0)
     }
 
     /// A layer over borrowed bytes, unchecked.

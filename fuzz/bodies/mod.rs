@@ -7,11 +7,12 @@
 use std::sync::{Mutex, OnceLock};
 
 use gomatch::camera::CameraModel;
+use gomatch::envelope::{self, HEADER_BYTES};
+use gomatch::error::BlobKind;
 use gomatch::link::{
     self, decode_frame, encode_frame, Device, LocalizeRequest, NoPin, Request, RequestBody,
     Response, Service, Views,
 };
-use gomatch::map::{HEADER_BYTES, MAP_MAGIC, MAP_VERSION};
 use gomatch::{Camera, Localizer, LocalizerConfig, Map, Model, Pose, Query, ViewSelection};
 use gomatch_sim::scene::Scene;
 
@@ -209,23 +210,36 @@ fn forward(model: &Model<'_>, map: &Map<'_>, camera: Camera, pixels: &[[f32; 2]]
     }
 }
 
-/// The model blob. The first byte is a mode: bit 0 writes a valid preamble (magic and
-/// version), bit 1 a valid CRC-32, so that mutations reach the decoder; when the blob
-/// decodes, a localization runs on it (the forward pass).
+/// Repairs the envelope of a fuzzed blob (`gomatch::envelope`) as the mode byte asks, so
+/// that mutations reach the decoder: bit 0 writes a valid magic, version and reserved
+/// field, bit 1 the payload length, bit 2 the CRC-32 of the payload.
+fn repair_envelope(kind: BlobKind, mode: u8, blob: &mut [u8]) {
+    let Some(payload) = blob.len().checked_sub(HEADER_BYTES) else {
+        return;
+    };
+    if mode & 1 != 0 {
+        blob[..4].copy_from_slice(&envelope::magic(kind));
+        blob[4..6].copy_from_slice(&envelope::version(kind).to_le_bytes());
+        blob[6..8].fill(0);
+    }
+    if mode & 2 != 0 {
+        let len = u32::try_from(payload).unwrap_or(u32::MAX);
+        blob[8..12].copy_from_slice(&len.to_le_bytes());
+    }
+    if mode & 4 != 0 {
+        let crc = envelope::crc32(&blob[HEADER_BYTES..]);
+        blob[12..16].copy_from_slice(&crc.to_le_bytes());
+    }
+}
+
+/// The model blob, its envelope repaired as the first byte asks ([`repair_envelope`]);
+/// when the blob decodes, a localization runs on it (the forward pass).
 pub fn model_blob(data: &[u8]) {
     let Some((&mode, blob)) = data.split_first() else {
         return;
     };
     let mut blob = blob.to_vec();
-    let preamble = gomatch::weights::preamble();
-    if mode & 1 != 0 && blob.len() >= preamble.len() {
-        blob[..preamble.len()].copy_from_slice(&preamble);
-    }
-    if mode & 2 != 0 && blob.len() >= 4 {
-        let body = blob.len() - 4;
-        let crc = gomatch::weights::crc32(&blob[..body]);
-        blob[body..].copy_from_slice(&crc.to_le_bytes());
-    }
+    repair_envelope(BlobKind::Model, mode, &mut blob);
     let Ok(model) = Model::from_bytes(&blob) else {
         return;
     };
@@ -234,30 +248,14 @@ pub fn model_blob(data: &[u8]) {
     forward(&model, &map, fixture.camera, &fixture.pixels);
 }
 
-/// The map blob. The first byte is a mode: bit 0 writes a valid magic and version, bit 1
-/// the payload length, bit 2 the CRC-32; when the blob decodes, every accessor runs on
-/// every index, and a localization.
+/// The map blob, its envelope repaired as the first byte asks ([`repair_envelope`]); when
+/// the blob decodes, every accessor runs on every index, and a localization.
 pub fn map_blob(data: &[u8]) {
     let Some((&mode, blob)) = data.split_first() else {
         return;
     };
     let mut blob = blob.to_vec();
-    if blob.len() >= HEADER_BYTES {
-        let payload = blob.len() - HEADER_BYTES;
-        if mode & 1 != 0 {
-            blob[..4].copy_from_slice(&MAP_MAGIC);
-            blob[4..6].copy_from_slice(&MAP_VERSION.to_le_bytes());
-            blob[6..8].fill(0);
-        }
-        if mode & 2 != 0 {
-            let len = u32::try_from(payload).unwrap_or(u32::MAX);
-            blob[8..12].copy_from_slice(&len.to_le_bytes());
-        }
-        if mode & 4 != 0 {
-            let crc = gomatch::map::crc32(&blob[HEADER_BYTES..]);
-            blob[12..16].copy_from_slice(&crc.to_le_bytes());
-        }
-    }
+    repair_envelope(BlobKind::Map, mode, &mut blob);
     let Ok(map) = Map::from_bytes(&blob) else {
         return;
     };

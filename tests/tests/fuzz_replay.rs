@@ -224,15 +224,11 @@ fn seeds() -> Vec<(&'static str, &'static str, Vec<u8>)> {
     let opencv = [500.0, 510.0, 320.0, 240.0, -0.1, 0.01, 1e-3, -1e-3];
     vec![
         ("model_blob", "tiny-f32", with_mode(0, &model)),
-        (
-            "model_blob",
-            "tiny-f32-fixed-preamble-crc",
-            with_mode(3, &model),
-        ),
+        ("model_blob", "tiny-f32-fixed-header", with_mode(7, &model)),
         (
             "model_blob",
             "tiny-f32-cut",
-            with_mode(2, &model[..model.len() / 2]),
+            with_mode(6, &model[..model.len() / 2]),
         ),
         ("map_blob", "tiny", with_mode(0, &map)),
         ("map_blob", "tiny-fixed-header", with_mode(7, &map)),

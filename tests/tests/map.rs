@@ -5,7 +5,9 @@ use std::collections::BTreeSet;
 use std::path::PathBuf;
 use std::sync::OnceLock;
 
-use gomatch::map::{crc32, Map, HEADER_BYTES};
+use gomatch::envelope::{self, HEADER_BYTES};
+use gomatch::error::BlobKind;
+use gomatch::map::Map;
 use gomatch::Error;
 use gomatch_sim::map::{build_map, exclude_images};
 use gomatch_sim::scene::{Scene, SceneSource};
@@ -160,10 +162,9 @@ proptest! {
     fn arbitrary_bytes_behind_a_valid_header_never_panic(
         payload in proptest::collection::vec(any::<u8>(), 0..2048)
     ) {
-        let mut blob = b"GMAP\x01\x00\x00\x00".to_vec();
-        blob.extend((payload.len() as u32).to_le_bytes());
-        blob.extend(crc32(&payload).to_le_bytes());
+        let mut blob = vec![0; HEADER_BYTES];
         blob.extend(&payload);
+        envelope::seal(BlobKind::Map, &mut blob, payload.len()).expect("fits");
         if let Ok(map) = Map::from_bytes(&blob) {
             read_everything(&map);
         }
@@ -182,8 +183,8 @@ proptest! {
         let mut blob = small_blob();
         let i = HEADER_BYTES + position.index(blob.len() - HEADER_BYTES);
         blob[i] = value;
-        let checksum = crc32(&blob[HEADER_BYTES..]);
-        blob[12..16].copy_from_slice(&checksum.to_le_bytes());
+        let payload = blob.len() - HEADER_BYTES;
+        envelope::seal(BlobKind::Map, &mut blob, payload).expect("fits");
         if let Ok(map) = Map::from_bytes(&blob) {
             read_everything(&map);
         }
@@ -196,7 +197,7 @@ proptest! {
         let expected_needed = if len < HEADER_BYTES { HEADER_BYTES } else { blob.len() };
         prop_assert_eq!(
             Map::from_bytes(&blob[..len]),
-            Err(Error::MapTruncated { needed: expected_needed, found: len })
+            Err(Error::BlobTruncated { blob: BlobKind::Map, needed: expected_needed, found: len })
         );
     }
 }

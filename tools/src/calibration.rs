@@ -10,7 +10,7 @@
 //! removes any error that is constant over the set. The two halves of an EdgeConv layer
 //! act together on the edge `[x_i; x_j]`, so they share one joint moment matrix.
 
-use gomatch::weights::{ModelConfig, RESIDUAL_BLOCK_TENSORS};
+use gomatch::weights::{tensor_index, CrossLayerWeights, ModelConfig, Section, SelfLayerWeights};
 use gomatch::{Matcher, Model, Precision};
 use rand::seq::SliceRandom;
 use rand::{RngExt, SeedableRng};
@@ -614,17 +614,10 @@ struct Engine<'t> {
 }
 
 impl Engine<'_> {
-    fn encoder_blocks(&self) -> usize {
-        usize::from(self.config.encoder_blocks)
-    }
-    fn self_base(&self, layer: usize) -> usize {
-        1 + RESIDUAL_BLOCK_TENSORS * self.encoder_blocks() + 5 * layer
-    }
-    fn cross_base(&self) -> usize {
-        self.self_base(2)
-    }
-    fn classifier_input(&self) -> usize {
-        self.cross_base() + 6
+    /// Blob index of `part` of instance `instance` of `section` (the core's layout).
+    fn index(&self, section: Section, instance: usize, part: usize) -> usize {
+        tensor_index(&self.config, section, instance, part)
+            .expect("the layout holds every tensor the forward pass uses")
     }
 
     /// Layer `index` on both paths.
@@ -769,22 +762,16 @@ impl Engine<'_> {
                 Both::exact(c)
             })
             .collect();
-        self.fit(0, &coords.iter().collect::<Vec<_>>(), false)?;
-        let x = coords.iter().map(|c| self.apply(0, c)).collect();
-        self.residual_blocks(x, 1, self.encoder_blocks())
+        let input = self.index(Section::EncoderInput, 0, 0);
+        self.fit(input, &coords.iter().collect::<Vec<_>>(), false)?;
+        let x = coords.iter().map(|c| self.apply(input, c)).collect();
+        self.residual_blocks(x, Section::EncoderBlock)
     }
 
-    /// `x += ReLU(IN(W2 IN(W1 W0 x)))` per block (biases included); tensors `first`,
-    /// `first + 1`, ...
-    fn residual_blocks(
-        &mut self,
-        mut x: Vec<Both>,
-        first: usize,
-        blocks: usize,
-    ) -> anyhow::Result<Vec<Both>> {
-        for b in 0..blocks {
-            let preconv = first + RESIDUAL_BLOCK_TENSORS * b;
-            let (conv1, conv2) = (preconv + 1, preconv + 2);
+    /// `x += ReLU(IN(W2 IN(W1 W0 x)))` per block of `section` (biases included).
+    fn residual_blocks(&mut self, mut x: Vec<Both>, section: Section) -> anyhow::Result<Vec<Both>> {
+        for b in 0..section.repeats(&self.config) {
+            let [preconv, conv1, conv2] = [0, 1, 2].map(|part| self.index(section, b, part));
             self.fit(preconv, &x.iter().collect::<Vec<_>>(), true)?;
             let h0: Vec<Both> = x.iter().map(|x| self.apply(preconv, x)).collect();
             self.fit(conv1, &h0.iter().collect::<Vec<_>>(), true)?;
@@ -811,20 +798,25 @@ impl Engine<'_> {
         x: &[Both],
         graphs: &[Graph],
     ) -> anyhow::Result<Vec<Both>> {
-        let base = self.self_base(layer);
-        let x1 = self.edge_conv(base, x, graphs)?;
-        let x2 = self.edge_conv(base + 2, &x1, graphs)?;
+        let part = |p| self.index(Section::SelfLayer, layer, p);
+        let (edge1, edge2, fuse) = (
+            part(SelfLayerWeights::EDGE1),
+            part(SelfLayerWeights::EDGE2),
+            part(SelfLayerWeights::FUSE),
+        );
+        let x1 = self.edge_conv(edge1, x, graphs)?;
+        let x2 = self.edge_conv(edge2, &x1, graphs)?;
         let cat: Vec<Both> = x
             .iter()
             .zip(&x1)
             .zip(&x2)
             .map(|((a, b), c)| Both::concat(&[a, b, c]))
             .collect();
-        self.fit(base + 4, &cat.iter().collect::<Vec<_>>(), true)?;
+        self.fit(fuse, &cat.iter().collect::<Vec<_>>(), true)?;
         Ok(cat
             .iter()
             .map(|c| {
-                self.apply(base + 4, c)
+                self.apply(fuse, c)
                     .map(|y| y.instance_norm().map(leaky_relu))
             })
             .collect())
@@ -853,9 +845,11 @@ impl Engine<'_> {
     /// tensors are fitted on the inputs of both calls; the second call's sources on the
     /// quantised path are the first call's outputs with the float cross layer.
     fn cross_layer(&mut self, x2: &[Both], x3: &[Both]) -> anyhow::Result<(Vec<Both>, Vec<Both>)> {
-        let base = self.cross_base();
+        // Tensors base.. in the order of `CrossLayerWeights::TENSORS`: query, key, value,
+        // merge, mlp_hidden, mlp_out.
+        let base = self.index(Section::CrossLayer, 0, CrossLayerWeights::QUERY);
         let heads = usize::from(self.config.heads);
-        let float = &self.float[base..base + 6];
+        let float = &self.float[base..base + CrossLayerWeights::TENSORS.len()];
         let first: Vec<Both> = x2
             .iter()
             .zip(x3)
@@ -901,11 +895,20 @@ impl Engine<'_> {
         self.fit(base + 5, &hidden.iter().collect::<Vec<_>>(), false)?;
         let both = |x: &Both, src: &Both| -> Both {
             Both {
-                f: cross(&self.float[base..base + 6], heads, &x.f, &src.f),
-                q: self
-                    .options
-                    .correct
-                    .then(|| cross(&self.effective[base..base + 6], heads, x.q(), src.q())),
+                f: cross(
+                    &self.float[base..base + CrossLayerWeights::TENSORS.len()],
+                    heads,
+                    &x.f,
+                    &src.f,
+                ),
+                q: self.options.correct.then(|| {
+                    cross(
+                        &self.effective[base..base + CrossLayerWeights::TENSORS.len()],
+                        heads,
+                        x.q(),
+                        src.q(),
+                    )
+                }),
             }
         };
         let new2: Vec<Both> = x2.iter().zip(x3).map(|(a, b)| both(a, b)).collect();
@@ -935,16 +938,12 @@ impl Engine<'_> {
                 Both::concat(&[&a.gather(&i2), &b.gather(&i3)])
             })
             .collect();
-        let first = self.classifier_input();
-        self.fit(first, &inputs.iter().collect::<Vec<_>>(), false)?;
-        let x = inputs.iter().map(|x| self.apply(first, x)).collect();
-        let blocks = usize::from(self.config.classifier_blocks);
-        let x = self.residual_blocks(x, first + 1, blocks)?;
-        self.fit(
-            first + 1 + RESIDUAL_BLOCK_TENSORS * blocks,
-            &x.iter().collect::<Vec<_>>(),
-            false,
-        )
+        let input = self.index(Section::ClassifierInput, 0, 0);
+        self.fit(input, &inputs.iter().collect::<Vec<_>>(), false)?;
+        let x = inputs.iter().map(|x| self.apply(input, x)).collect();
+        let x = self.residual_blocks(x, Section::ClassifierBlock)?;
+        let output = self.index(Section::ClassifierOutput, 0, 0);
+        self.fit(output, &x.iter().collect::<Vec<_>>(), false)
     }
 }
 

@@ -12,8 +12,10 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use anyhow::{bail, ensure, Context, Result};
+use gomatch::envelope::{self, HEADER_BYTES};
+use gomatch::error::BlobKind;
 use gomatch::weights::{
-    preamble, tensor_count, tensor_spec, BlobHeader, ModelConfig, Precision, TensorRecord,
+    tensor_count, tensor_spec, BlobHeader, ModelConfig, Precision, TensorRecord,
 };
 use safetensors::{Dtype, SafeTensors};
 
@@ -544,7 +546,7 @@ fn apply_metadata(config: &mut ModelConfig, json: &str) -> Result<()> {
     Ok(())
 }
 
-/// Serialises the blob: preamble, header, tensor records, CRC-32. int8 tensors are
+/// Serialises the blob: envelope, header, tensor records. int8 tensors are
 /// rounded as `options` ask; [`Rounding::Gptq`] first runs the f32 model on the synthetic
 /// calibration pairs ([`crate::calibration`]).
 pub fn write_blob(
@@ -592,7 +594,7 @@ pub fn write_blob_with(
             &fitted[..]
         }
     };
-    let mut blob = preamble().to_vec();
+    let mut blob = vec![0; HEADER_BYTES];
     let header = BlobHeader {
         config: *config,
         precision: options.precision,
@@ -612,8 +614,8 @@ pub fn write_blob_with(
         };
         blob.extend(postcard::to_allocvec(&record)?);
     }
-    let crc = gomatch::weights::crc32(&blob);
-    blob.extend(crc.to_le_bytes());
+    let payload = blob.len() - HEADER_BYTES;
+    envelope::seal(BlobKind::Model, &mut blob, payload)?;
     Ok(blob)
 }
 

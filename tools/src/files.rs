@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 
 use gomatch::map::{Map, MAP_MAGIC};
-use gomatch::weights::MAGIC as MODEL_MAGIC;
+use gomatch::weights::MODEL_MAGIC;
 use gomatch::{Error, Model};
 
 /// The shipped int8 model, relative to the repository root.
@@ -86,10 +86,10 @@ fn map_advice(kind: FileKind, error: Error) -> String {
             "it is {}: pass it as the model, and a map blob (from `gomatch-sim map build`) as the map",
             kind.describe()
         ),
-        (FileKind::MapBlob, Error::MapVersionMismatch { .. }) => {
+        (FileKind::MapBlob, Error::BlobVersion { .. }) => {
             "the map was written by another version: rebuild it with `gomatch-sim map build`".into()
         }
-        (FileKind::MapBlob, Error::MapTruncated { .. } | Error::MapChecksumMismatch { .. }) => {
+        (FileKind::MapBlob, Error::BlobTruncated { .. } | Error::BlobChecksum { .. }) => {
             "the file is truncated or damaged: copy it again or rebuild it with `gomatch-sim map build`".into()
         }
         (FileKind::MapBlob, _) => "rebuild it with `gomatch-sim map build`".into(),
@@ -174,6 +174,7 @@ pub fn shipped_model_path() -> PathBuf {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use gomatch::error::BlobKind;
 
     #[test]
     fn kinds_are_recognised_from_their_first_bytes() {
@@ -190,23 +191,43 @@ mod tests {
 
     #[test]
     fn wrong_kinds_get_advice() {
-        let advice = model_advice(FileKind::Safetensors, Error::BlobMagic { found: [0; 4] });
+        let advice = model_advice(
+            FileKind::Safetensors,
+            Error::BlobMagic {
+                blob: BlobKind::Model,
+                found: [0; 4],
+            },
+        );
         assert!(advice.contains("gomatch-tools convert"), "{advice}");
-        let advice = model_advice(FileKind::MapBlob, Error::BlobMagic { found: *b"GMAP" });
+        let advice = model_advice(
+            FileKind::MapBlob,
+            Error::BlobMagic {
+                blob: BlobKind::Model,
+                found: *b"GMAP",
+            },
+        );
         assert!(advice.contains("map blob"), "{advice}");
         let advice = model_advice(
             FileKind::ModelBlob,
             Error::BlobChecksum {
+                blob: BlobKind::Model,
                 stored: 0,
                 computed: 1,
             },
         );
         assert!(advice.contains("truncated"), "{advice}");
-        let advice = map_advice(FileKind::ModelBlob, Error::MapBadMagic);
+        let advice = map_advice(
+            FileKind::ModelBlob,
+            Error::BlobMagic {
+                blob: BlobKind::Map,
+                found: *b"GMWB",
+            },
+        );
         assert!(advice.contains("as the model"), "{advice}");
         let advice = map_advice(
             FileKind::MapBlob,
-            Error::MapVersionMismatch {
+            Error::BlobVersion {
+                blob: BlobKind::Map,
                 expected: 2,
                 found: 1,
             },

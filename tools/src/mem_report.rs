@@ -30,7 +30,7 @@ use anyhow::{bail, ensure, Context, Result};
 use gomatch::link::{rx_frame_len, Device};
 use gomatch::localizer::{view_point_bearings, Localization, ViewSelection};
 use gomatch::sinkhorn::PlanScalar;
-use gomatch::weights::{Precision, MAGIC};
+use gomatch::weights::{Precision, MODEL_MAGIC};
 use gomatch::{
     estimate_pose, Camera, Localizer, LocalizerConfig, Map, Model, PnpWorkspace, Pose, Query,
     RansacConfig,
@@ -486,7 +486,7 @@ pub fn model_blobs(path: Option<&Path>, precisions: &[Precision]) -> Result<(Blo
             .context("no model: models/gomatch.safetensors and shared/reference/fixtures/weights.safetensors are not found from the current folder or the executable's; pass --model")?,
     };
     let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-    if bytes.starts_with(&MAGIC) {
+    if bytes.starts_with(&MODEL_MAGIC) {
         let bytes = read_model_blob(&path)?;
         let model = Model::from_bytes(&bytes).map_err(|e| anyhow::anyhow!("model blob: {e}"))?;
         let precision = model.precision();

@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# Evaluation reports for fitting the acceptance rule (docs/evaluation.md, "Acceptance rule"): runs
+# `gomatch-sim eval --k 10 --seed 0` with the shipped int8 model on every training scene of ../shared/data
+# that has real outlier keypoints (COLMAP and OpenSfM; the validation scenes are never used) and writes
+# OUT_DIR/<name>.json (default models/acceptance/train), then fits the rule on them and checks it on the
+# validation reports of tools/train/eval_all.sh (models/eval-all/*-int8.json):
+#
+#   tools/train/acceptance_reports.sh [OUT_DIR]
+#
+# Environment: QUERIES per scene (default 40), THREADS (default 1), MODEL (default models/gomatch-int8.bin),
+# BIN (a gomatch-sim binary to use instead of building target/release/gomatch-sim). A scene whose report
+# exists is kept (delete it to re-run), so an interrupted run resumes.
+set -euo pipefail
+repo=$(cd "$(dirname "$0")/../.." && pwd)
+out=${1:-$repo/models/acceptance/train}
+queries=${QUERIES:-40}
+threads=${THREADS:-1}
+model=${MODEL:-$repo/models/gomatch-int8.bin}
+data="$repo/../shared/data"
+[ -d "$data" ] || { echo "no ../shared/data beside the checkout" >&2; exit 1; }
+validation="colmap/mouse colmap/sceaux colmap/mamechun colmap/softmurata opensfm/projcv_cc9d27"
+bin=${BIN:-}
+if [ -z "$bin" ]; then
+  cargo build --release -q -p gomatch-sim --manifest-path "$repo/Cargo.toml"
+  bin="$repo/target/release/gomatch-sim"
+fi
+mkdir -p "$out"
+for dir in "$data"/colmap/* "$data"/opensfm/*; do
+  kind=$(basename "$(dirname "$dir")")
+  name=$(basename "$dir")
+  case " $validation " in *" $kind/$name "*) continue ;; esac
+  [ -s "$out/$name.json" ] && continue
+  "$bin" eval --"$kind" "$dir" --model "$model" --k 10 --queries "$queries" --seed 0 --threads "$threads" \
+    --json "$out/$name.json" >"$out/$name.log" 2>&1 || echo "eval failed on $kind/$name (see $out/$name.log)"
+done
+"$bin" fit-acceptance --reports "$out"/*.json --check "$repo"/models/eval-all/*-int8.json \
+  --out "$repo/models/acceptance/rule.json" | tee "$repo/models/acceptance/fit.txt"
