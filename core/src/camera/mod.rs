@@ -4,79 +4,17 @@
 //!
 //! A bearing vector here is the point `(x/z, y/z)` on the normalised image plane.
 
+mod lens;
+mod models;
+
 use serde::{Deserialize, Serialize};
+
+pub use lens::{Coefficients, Distort, Lens, LENS_COEFFICIENTS, RADIAL_TANGENTIAL};
+pub use models::{CameraModel, ModelSpec, Param, MAX_PARAMS, MODELS};
 
 use crate::error::{Error, Input, Result};
 
-/// Iteration cap of the Newton undistortion.
-const UNDISTORT_MAX_ITERATIONS: usize = 100;
-/// Squared step length under which the Newton undistortion has converged.
-const UNDISTORT_STEP_TOLERANCE2: f64 = 1e-24;
-
-/// The COLMAP camera models supported, with their COLMAP model ids.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-pub enum CameraModel {
-    /// `f, cx, cy` (COLMAP id 0).
-    SimplePinhole,
-    /// `fx, fy, cx, cy` (COLMAP id 1).
-    Pinhole,
-    /// `f, cx, cy, k` (COLMAP id 2).
-    SimpleRadial,
-    /// `f, cx, cy, k1, k2` (COLMAP id 3).
-    Radial,
-    /// `fx, fy, cx, cy, k1, k2, p1, p2` (COLMAP id 4).
-    OpenCv,
-}
-
-impl CameraModel {
-    /// Model from its COLMAP id.
-    pub fn from_colmap_id(id: i32) -> Result<Self> {
-        match id {
-            0 => Ok(Self::SimplePinhole),
-            1 => Ok(Self::Pinhole),
-            2 => Ok(Self::SimpleRadial),
-            3 => Ok(Self::Radial),
-            4 => Ok(Self::OpenCv),
-            _ => Err(Error::InvalidIntrinsics),
-        }
-    }
-
-    /// Model from its COLMAP name (`SIMPLE_PINHOLE`, `PINHOLE`, ...).
-    pub fn from_colmap_name(name: &str) -> Result<Self> {
-        match name {
-            "SIMPLE_PINHOLE" => Ok(Self::SimplePinhole),
-            "PINHOLE" => Ok(Self::Pinhole),
-            "SIMPLE_RADIAL" => Ok(Self::SimpleRadial),
-            "RADIAL" => Ok(Self::Radial),
-            "OPENCV" => Ok(Self::OpenCv),
-            _ => Err(Error::InvalidIntrinsics),
-        }
-    }
-
-    /// COLMAP id of the model.
-    pub fn colmap_id(self) -> i32 {
-        match self {
-            Self::SimplePinhole => 0,
-            Self::Pinhole => 1,
-            Self::SimpleRadial => 2,
-            Self::Radial => 3,
-            Self::OpenCv => 4,
-        }
-    }
-
-    /// Number of COLMAP parameters of the model.
-    pub fn param_count(self) -> usize {
-        match self {
-            Self::SimplePinhole => 3,
-            Self::Pinhole => 4,
-            Self::SimpleRadial => 4,
-            Self::Radial => 5,
-            Self::OpenCv => 8,
-        }
-    }
-}
-
-/// A calibrated camera: pinhole intrinsics plus radial/tangential distortion.
+/// A calibrated camera: pinhole intrinsics plus its model's lens distortion.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Camera {
     /// Which COLMAP model the parameters came from.
@@ -89,8 +27,9 @@ pub struct Camera {
     pub focal: [f64; 2],
     /// Principal point in pixels.
     pub principal: [f64; 2],
-    /// Distortion `k1, k2, p1, p2` (zero where the model has none).
-    pub distortion: [f64; 4],
+    /// Coefficients of the model's [`Lens`]: `k1, k2, p1, p2` of [`RADIAL_TANGENTIAL`]
+    /// for every model so far (zero where the model has none).
+    pub distortion: Coefficients,
 }
 
 impl Camera {
@@ -106,14 +45,22 @@ impl Camera {
         if params.len() != model.param_count() || params.iter().any(|p| !p.is_finite()) {
             return Err(Error::InvalidIntrinsics);
         }
-        let p = params;
-        let (focal, principal, distortion) = match model {
-            CameraModel::SimplePinhole => ([p[0], p[0]], [p[1], p[2]], [0.0; 4]),
-            CameraModel::Pinhole => ([p[0], p[1]], [p[2], p[3]], [0.0; 4]),
-            CameraModel::SimpleRadial => ([p[0], p[0]], [p[1], p[2]], [p[3], 0.0, 0.0, 0.0]),
-            CameraModel::Radial => ([p[0], p[0]], [p[1], p[2]], [p[3], p[4], 0.0, 0.0]),
-            CameraModel::OpenCv => ([p[0], p[1]], [p[2], p[3]], [p[4], p[5], p[6], p[7]]),
-        };
+        let (mut focal, mut principal) = ([0.0; 2], [0.0; 2]);
+        let mut distortion = [0.0; LENS_COEFFICIENTS];
+        for (&param, &value) in model.spec().params.iter().zip(params) {
+            match param {
+                Param::Focal => focal = [value, value],
+                Param::FocalX => focal[0] = value,
+                Param::FocalY => focal[1] = value,
+                Param::PrincipalX => principal[0] = value,
+                Param::PrincipalY => principal[1] = value,
+                Param::Coefficient(i) => {
+                    if let Some(slot) = distortion.get_mut(i) {
+                        *slot = value;
+                    }
+                }
+            }
+        }
         if focal[0] <= 0.0 || focal[1] <= 0.0 {
             return Err(Error::InvalidIntrinsics);
         }
@@ -133,18 +80,19 @@ impl Camera {
     }
 
     /// The parameters in COLMAP order; the count is `model.param_count()`.
-    pub fn colmap_params(&self) -> ([f64; 8], usize) {
-        let [fx, fy] = self.focal;
-        let [cx, cy] = self.principal;
-        let [k1, k2, p1, p2] = self.distortion;
-        let all = match self.model {
-            CameraModel::SimplePinhole => [fx, cx, cy, 0.0, 0.0, 0.0, 0.0, 0.0],
-            CameraModel::Pinhole => [fx, fy, cx, cy, 0.0, 0.0, 0.0, 0.0],
-            CameraModel::SimpleRadial => [fx, cx, cy, k1, 0.0, 0.0, 0.0, 0.0],
-            CameraModel::Radial => [fx, cx, cy, k1, k2, 0.0, 0.0, 0.0],
-            CameraModel::OpenCv => [fx, fy, cx, cy, k1, k2, p1, p2],
-        };
-        (all, self.model.param_count())
+    pub fn colmap_params(&self) -> ([f64; MAX_PARAMS], usize) {
+        let spec = self.model.spec();
+        let mut all = [0.0; MAX_PARAMS];
+        for (value, &param) in all.iter_mut().zip(spec.params) {
+            *value = match param {
+                Param::Focal | Param::FocalX => self.focal[0],
+                Param::FocalY => self.focal[1],
+                Param::PrincipalX => self.principal[0],
+                Param::PrincipalY => self.principal[1],
+                Param::Coefficient(i) => self.distortion.get(i).copied().unwrap_or(0.0),
+            };
+        }
+        (all, spec.params.len())
     }
 
     /// Checks a camera built field by field: finite parameters and positive focal
@@ -190,19 +138,13 @@ impl Camera {
         self.undistort(distorted)
     }
 
-    /// Distorted radius on the normalised plane up to which the radial distortion
-    /// `r (1 + k1 r^2 + k2 r^4)` is increasing, hence invertible: its value at the first
-    /// zero of its derivative `1 + 3 k1 r^2 + 5 k2 r^4`, infinite when there is none. A
-    /// distorted point farther out either has no undistorted point or several (the lens
-    /// model folds back), so any bearing found for it is arbitrary; an OPENCV camera with
-    /// `k1 = -1e6, k2 = 1e6` folds at 3.9e-4, squeezing a whole image into a tiny cone.
+    /// Distorted radius on the normalised plane up to which the lens distortion is
+    /// increasing, hence invertible (infinite when everywhere). A distorted point farther
+    /// out either has no undistorted point or several (the lens model folds back), so any
+    /// bearing found for it is arbitrary; an OPENCV camera with `k1 = -1e6, k2 = 1e6`
+    /// folds at 3.9e-4, squeezing a whole image into a tiny cone.
     pub fn invertible_radius(&self) -> f64 {
-        let [k1, k2, _, _] = self.distortion;
-        let Some(s) = smallest_positive_root(5.0 * k2, 3.0 * k1, 1.0) else {
-            return f64::INFINITY;
-        };
-        let r = libm::sqrt(s);
-        r * (1.0 + k1 * s + k2 * s * s)
+        (self.lens().invertible_radius)(&self.distortion)
     }
 
     /// Pixel of a bearing vector `(x/z, y/z)`: distortion followed by `K`.
@@ -222,70 +164,17 @@ impl Camera {
         }
     }
 
-    fn has_distortion(&self) -> bool {
-        self.distortion.iter().any(|&d| d != 0.0)
-    }
-
-    /// COLMAP's distortion of a normalised point, with its 2x2 Jacobian (row-major).
-    fn distort_with_jacobian(&self, [u, v]: [f64; 2]) -> ([f64; 2], [f64; 4]) {
-        let [k1, k2, p1, p2] = self.distortion;
-        let (u2, v2, uv) = (u * u, v * v, u * v);
-        let r2 = u2 + v2;
-        let radial = k1 * r2 + k2 * r2 * r2;
-        let d_radial = k1 + 2.0 * k2 * r2; // d radial / d r2
-        let du = u * radial + 2.0 * p1 * uv + p2 * (r2 + 2.0 * u2);
-        let dv = v * radial + 2.0 * p2 * uv + p1 * (r2 + 2.0 * v2);
-        let j00 = 1.0 + radial + 2.0 * u2 * d_radial + 2.0 * p1 * v + 6.0 * p2 * u;
-        let j01 = 2.0 * uv * d_radial + 2.0 * p1 * u + 2.0 * p2 * v;
-        let j10 = 2.0 * uv * d_radial + 2.0 * p2 * v + 2.0 * p1 * u;
-        let j11 = 1.0 + radial + 2.0 * v2 * d_radial + 2.0 * p2 * u + 6.0 * p1 * v;
-        ([u + du, v + dv], [j00, j01, j10, j11])
+    fn lens(&self) -> Lens {
+        self.model.spec().lens
     }
 
     fn distort(&self, point: [f64; 2]) -> [f64; 2] {
-        self.distort_with_jacobian(point).0
+        (self.lens().distort)(&self.distortion, point).0
     }
 
-    /// Inverts [`Self::distort`] by Newton's method, starting at the distorted point.
     fn undistort(&self, distorted: [f64; 2]) -> Result<[f64; 2]> {
-        if !self.has_distortion() {
-            return Ok(distorted);
-        }
-        let mut x = distorted;
-        for _ in 0..UNDISTORT_MAX_ITERATIONS {
-            let (f, [a, b, c, d]) = self.distort_with_jacobian(x);
-            let r = [f[0] - distorted[0], f[1] - distorted[1]];
-            let det = a * d - b * c;
-            if !det.is_finite() || det.abs() < 1e-12 {
-                return Err(Error::UndistortionDidNotConverge { index: 0 });
-            }
-            let step = [(d * r[0] - b * r[1]) / det, (a * r[1] - c * r[0]) / det];
-            x = [x[0] - step[0], x[1] - step[1]];
-            if step[0] * step[0] + step[1] * step[1] < UNDISTORT_STEP_TOLERANCE2 {
-                return Ok(x);
-            }
-        }
-        Err(Error::UndistortionDidNotConverge { index: 0 })
+        (self.lens().undistort)(&self.distortion, distorted)
     }
-}
-
-/// Smallest positive root of `a s^2 + b s + c` (`c = 1` here, so 0 is never a root).
-fn smallest_positive_root(a: f64, b: f64, c: f64) -> Option<f64> {
-    if a == 0.0 {
-        let s = -c / b;
-        return (s > 0.0 && s.is_finite()).then_some(s);
-    }
-    let discriminant = b * b - 4.0 * a * c;
-    if discriminant < 0.0 {
-        return None;
-    }
-    let root = libm::sqrt(discriminant);
-    // Both roots without cancellation: q = -(b + sign(b) root) / 2, s = q / a and c / q.
-    let q = -0.5 * (b + libm::copysign(root, b));
-    [q / a, c / q]
-        .into_iter()
-        .filter(|s| *s > 0.0 && s.is_finite())
-        .min_by(f64::total_cmp)
 }
 
 #[cfg(test)]
@@ -367,5 +256,23 @@ mod tests {
             Err(Error::InvalidIntrinsics)
         );
         assert!(CameraModel::from_colmap_id(7).is_err());
+        assert!(CameraModel::from_colmap_name("FISHEYE").is_err());
+    }
+
+    #[test]
+    fn every_model_is_found_by_id_and_name_and_keeps_its_parameters() {
+        let params: [f64; MAX_PARAMS] = core::array::from_fn(|i| 100.0 + i as f64);
+        for (index, spec) in MODELS.iter().enumerate() {
+            assert_eq!(spec.model.spec().id, spec.id);
+            assert_eq!(spec.model as usize, index);
+            assert_eq!(CameraModel::from_colmap_id(spec.id), Ok(spec.model));
+            assert_eq!(CameraModel::from_colmap_name(spec.name), Ok(spec.model));
+            let count = spec.model.param_count();
+            let camera = Camera::from_colmap(spec.model, 640, 480, &params[..count]).unwrap();
+            let (written, written_count) = camera.colmap_params();
+            assert_eq!(written_count, count);
+            assert_eq!(written[..count], params[..count]);
+            assert!(written[count..].iter().all(|&p| p == 0.0));
+        }
     }
 }
