@@ -113,7 +113,7 @@ const FONT_FILES: [&str; 3] = [
     "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf",
 ];
 
-/// Registers the first readable font of [`FONT_FILES`] as "sans-serif" (once); whether
+/// Registers the first readable font of `FONT_FILES` as "sans-serif" (once); whether
 /// one is available.
 pub fn register_font() -> bool {
     static REGISTERED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();

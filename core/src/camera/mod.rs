@@ -1,6 +1,6 @@
-//! Camera models with COLMAP's parameter order, and the mapping between pixels and bearing
-//! vectors (paper sec. 3, "Keypoint Representation": `[b 1]^T ∝ K^-1 [u v 1]^T`, after
-//! removing lens distortion).
+//! Cameras of the COLMAP models in [`MODELS`] (one table entry per model), and the mapping
+//! between pixels and bearing vectors (paper sec. 3, "Keypoint Representation":
+//! `[b 1]^T ∝ K^-1 [u v 1]^T`, after removing the model's [`Lens`] distortion).
 //!
 //! A bearing vector here is the point `(x/z, y/z)` on the normalised image plane.
 
