@@ -417,13 +417,8 @@ impl Bytes<'_> {
 pub fn localize(data: &[u8]) {
     let fixture = fixture();
     let mut bytes = Bytes(data);
-    let camera_model = match bytes.u8() % 5 {
-        0 => CameraModel::SimplePinhole,
-        1 => CameraModel::Pinhole,
-        2 => CameraModel::SimpleRadial,
-        3 => CameraModel::Radial,
-        _ => CameraModel::OpenCv,
-    };
+    let models = gomatch::camera::MODELS;
+    let camera_model: CameraModel = models[usize::from(bytes.u8()) % models.len()].model;
     let (width, height) = (u32::from(bytes.u16()), u32::from(bytes.u16()));
     let params: Vec<f64> = (0..camera_model.param_count())
         .map(|_| bytes.f64())

@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
-use gomatch::camera::CameraModel;
+use gomatch::camera::{CameraModel, MAX_PARAMS};
 use gomatch::{Camera, Pose};
 use nalgebra::Vector3;
 
@@ -193,7 +193,7 @@ pub fn parse_cameras_bin(data: &[u8]) -> Result<BTreeMap<CameraId, Camera>, Form
         })?;
         let width = reader.u64("camera width")?;
         let height = reader.u64("camera height")?;
-        let mut params = [0.0; 8];
+        let mut params = [0.0; MAX_PARAMS];
         for p in params.iter_mut().take(model.param_count()) {
             *p = reader.f64("camera parameter")?;
         }
@@ -343,7 +343,7 @@ pub fn camera_line(camera: &Camera) -> String {
     let params: Vec<String> = params[..count].iter().map(f64::to_string).collect();
     format!(
         "{} {} {} {}",
-        colmap_model_name(camera.model),
+        camera.model.colmap_name(),
         camera.width,
         camera.height,
         params.join(" ")
@@ -475,7 +475,7 @@ pub fn write_model_txt(scene: &Scene, dir: &Path) -> anyhow::Result<()> {
         writeln!(
             cameras,
             "{id} {} {} {} {}",
-            colmap_model_name(camera.model),
+            camera.model.colmap_name(),
             camera.width,
             camera.height,
             params.join(" ")
@@ -527,16 +527,6 @@ pub fn write_model_txt(scene: &Scene, dir: &Path) -> anyhow::Result<()> {
         std::fs::write(&path, content).with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
-}
-
-pub fn colmap_model_name(model: CameraModel) -> &'static str {
-    match model {
-        CameraModel::SimplePinhole => "SIMPLE_PINHOLE",
-        CameraModel::Pinhole => "PINHOLE",
-        CameraModel::SimpleRadial => "SIMPLE_RADIAL",
-        CameraModel::Radial => "RADIAL",
-        CameraModel::OpenCv => "OPENCV",
-    }
 }
 
 #[cfg(test)]

@@ -12,6 +12,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use safetensors::tensor::TensorView;
 use safetensors::Dtype;
 
+use crate::host::ScenesArgs;
 use crate::protocol::{scene_samples, ProtocolParams, QuerySample};
 use crate::scene::{Scene, SceneSource};
 use crate::synthetic::{collection_scene, synthetic_scene};
@@ -28,28 +29,9 @@ pub struct Args {
     /// Output safetensors file.
     #[arg(long)]
     pub output: PathBuf,
-    /// COLMAP sparse model folder (repeatable).
-    #[arg(long)]
-    pub colmap: Vec<PathBuf>,
-    /// BAL problem file (repeatable).
-    #[arg(long)]
-    pub bal: Vec<PathBuf>,
-    /// Bundler v0.3 bundle.out file (repeatable).
-    #[arg(long)]
-    pub bundler: Vec<PathBuf>,
-    /// OpenSfM dataset folder, reconstruction.json + tracks.csv (repeatable).
-    #[arg(long)]
-    pub opensfm: Vec<PathBuf>,
-    /// Number of synthetic scenes to generate.
-    #[arg(long, default_value_t = 0)]
-    pub synthetic: u64,
-    /// Seed of the synthetic scene family.
-    #[arg(long, default_value_t = 0)]
-    pub synthetic_seed: u64,
-    /// Number of synthetic photo collections of a landmark to generate (seeded by
-    /// `--synthetic-seed`; scenes `collection/<index>`).
-    #[arg(long, default_value_t = 0)]
-    pub synthetic_collection: u64,
+    /// The scenes.
+    #[command(flatten)]
+    pub scenes: ScenesArgs,
     /// Co-visible views per query.
     #[arg(long, default_value_t = 10)]
     pub k: usize,
@@ -252,15 +234,8 @@ impl DatasetWriter {
     }
 }
 
-fn sources(args: &Args) -> Vec<Source> {
-    let files = args
-        .colmap
-        .iter()
-        .map(|p| SceneSource::Colmap(p.clone()))
-        .chain(args.bal.iter().map(|p| SceneSource::Bal(p.clone())))
-        .chain(args.bundler.iter().map(|p| SceneSource::Bundler(p.clone())))
-        .chain(args.opensfm.iter().map(|p| SceneSource::OpenSfm(p.clone())))
-        .map(Source::File);
+fn sources(args: &ScenesArgs) -> Vec<Source> {
+    let files = args.files().into_iter().map(Source::File);
     let synthetic = (0..args.synthetic).map(|index| Source::Synthetic {
         seed: args.synthetic_seed,
         index,
@@ -275,7 +250,7 @@ fn sources(args: &Args) -> Vec<Source> {
 /// Runs the command: builds every scene's samples, writes the file, prints a summary.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     let params = args.protocol();
-    let sources = sources(args);
+    let sources = sources(&args.scenes);
     anyhow::ensure!(
         !sources.is_empty(),
         "no scene: give --colmap, --bal, --bundler, --opensfm, --synthetic or --synthetic-collection"
@@ -300,7 +275,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         progress.inc(1);
     }
     progress.finish_and_clear();
-    let extra = [("synthetic_seed", args.synthetic_seed.to_string())];
+    let extra = [("synthetic_seed", args.scenes.synthetic_seed.to_string())];
     writer.write(&args.output, &params, &extra)?;
     let seconds = started.elapsed().as_secs_f64();
     let size = std::fs::metadata(&args.output)?.len();

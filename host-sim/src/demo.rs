@@ -11,10 +11,8 @@ use clap::Parser;
 use gomatch::{Localizer, LocalizerConfig, Model, PnpWorkspace};
 use half::f16;
 
-use crate::eval::{
-    default_model_path, evaluate, EvalOptions, Matching, QueryResult, Report, SinkhornPrecision,
-    CAPACITY,
-};
+use crate::eval::{evaluate, EvalOptions, Matching, QueryResult, Report, SinkhornPrecision};
+use crate::host::{default_model_path, CAPACITY};
 
 use crate::synthetic::SyntheticQueries;
 

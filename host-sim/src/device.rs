@@ -26,7 +26,8 @@ use half::f16;
 use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64Mcg;
 
-use crate::eval::{default_model_path, protocol_samples, query_pixels, HostClock, CAPACITY};
+use crate::eval::{protocol_samples, query_pixels};
+use crate::host::{default_model_path, HostClock, CAPACITY};
 use crate::map::build_map;
 use crate::protocol::QuerySample;
 use crate::synthetic::SyntheticQueries;

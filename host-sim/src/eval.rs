@@ -19,7 +19,7 @@ use std::time::Instant;
 use anyhow::{bail, Context};
 use clap::{Parser, ValueEnum};
 use gomatch::acceptance::{AcceptanceRule, Evidence, FEATURES};
-use gomatch::localizer::{Clock, Correspondence, MatchCounts, StageTimings};
+use gomatch::localizer::{Correspondence, MatchCounts, StageTimings};
 use gomatch::map::Map;
 use gomatch::sinkhorn::PlanScalar;
 use gomatch::{
@@ -30,15 +30,14 @@ use half::f16;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
 
-use crate::map::{build_map, map_point_index, ModelArgs};
+use crate::host::{default_model_path, register_font, HostClock, ModelArgs, CAPACITY};
+use crate::map::{build_map, map_point_index};
 use crate::protocol::{
     error_auc, quantiles, query_reprojection_error, query_sample, select_queries, ProtocolParams,
     QuerySample,
 };
 use crate::scene::{ImageId, PointId, Scene};
 
-/// Keypoint and per-view point capacity of the evaluated localizer (the paper's 1024).
-pub const CAPACITY: usize = 1024;
 /// Thread stack for the localizer workers: the workspace lives on it (about 7.7 MiB with
 /// an f32 cost, twice that in unoptimised builds).
 const WORKER_STACK: usize = 64 << 20;
@@ -106,28 +105,6 @@ pub enum SinkhornPrecision {
     F16,
     /// Single precision.
     F32,
-}
-
-/// The repository's shipped model, `models/gomatch-int8.bin`, found from the current
-/// folder or the executable's ([`gomatch_tools::files::shipped_model_path`]).
-pub fn default_model_path() -> PathBuf {
-    gomatch_tools::files::shipped_model_path()
-}
-
-/// Microseconds from [`Instant`], the host's [`Clock`] for the core's stage timings.
-#[derive(Debug, Clone, Copy)]
-pub struct HostClock(Instant);
-
-impl Default for HostClock {
-    fn default() -> Self {
-        Self(Instant::now())
-    }
-}
-
-impl Clock for HostClock {
-    fn now_us(&self) -> u64 {
-        u64::try_from(self.0.elapsed().as_micros()).unwrap_or(u64::MAX)
-    }
 }
 
 /// Match counts per stage (the core's [`MatchCounts`]).
@@ -902,30 +879,6 @@ pub fn plot_curves(scene: &str, curves: &[(String, Vec<f64>)], path: &Path) -> a
     }
     root.present()?;
     Ok(())
-}
-
-/// Font files tried for the plot's text (plotters draws text with `ab_glyph`, pure Rust,
-/// from a font it is given; no system font library is needed).
-const FONT_FILES: [&str; 3] = [
-    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/TTF/DejaVuSans.ttf",
-    "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf",
-];
-
-/// Registers the first readable font of [`FONT_FILES`] as "sans-serif" (once); whether
-/// one is available.
-pub(crate) fn register_font() -> bool {
-    static REGISTERED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *REGISTERED.get_or_init(|| {
-        FONT_FILES.iter().any(|path| {
-            let Ok(bytes) = std::fs::read(path) else {
-                return false;
-            };
-            let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-            plotters::style::register_font("sans-serif", plotters::style::FontStyle::Normal, bytes)
-                .is_ok()
-        })
-    })
 }
 
 /// Label of a report's curve: matcher (the model blob's file name), k and the three AUCs.

@@ -5,12 +5,14 @@
 //! ([`colmap`], [`bal`], [`bundler`], [`opensfm`]) and the simulator ([`synthetic`]) produce;
 //! [`protocol`] turns a scene into localization samples with ground truth and scores
 //! results, for both the training set ([`dataset`]) and evaluation; [`map`] turns a scene
-//! into the core's geometric-only map blob.
+//! into the core's geometric-only map blob. [`host`] holds what the subcommands share (the
+//! evaluated capacity, the shipped model's path, the host clock, the scene-source flags).
 
 pub mod bal;
 pub mod bundler;
 pub mod colmap;
 pub mod dataset;
+pub mod host;
 pub mod keypoints;
 pub mod localize;
 pub mod map;

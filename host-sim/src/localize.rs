@@ -22,7 +22,8 @@ use nalgebra::UnitQuaternion;
 use serde::{Deserialize, Serialize};
 
 use crate::colmap::parse_camera_line;
-use crate::eval::{Counts, HostClock, TimingsMs, CAPACITY};
+use crate::eval::{Counts, TimingsMs};
+use crate::host::{HostClock, CAPACITY};
 use crate::keypoints::{read_keypoint_file, ColmapDatabase, KeypointFile};
 
 /// Thread stack for the localizer (its workspace lives on it; see `eval`).

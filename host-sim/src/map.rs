@@ -15,8 +15,9 @@ use gomatch::map::{
 use gomatch::pose::{MAX_BEARING, MIN_DEPTH_RATIO};
 
 use crate::colmap::camera_line;
+use crate::host::ModelArgs;
 use crate::protocol::{audit_projections, ProjectionAudit, ProtocolParams};
-use crate::scene::{ImageId, Keypoint, Scene, SceneSource};
+use crate::scene::{ImageId, Keypoint, Scene};
 
 /// Bytes of one SIFT descriptor (128 x u8).
 pub const SIFT_DESCRIPTOR_BYTES: usize = 128;
@@ -57,37 +58,6 @@ pub struct BuildArgs {
     /// Leave these images (by name) out of the map, e.g. to localize them against it.
     #[arg(long, num_args = 1..)]
     pub exclude: Vec<String>,
-}
-
-/// Exactly one model source.
-#[derive(Debug, Clone, ClapArgs)]
-#[group(required = true, multiple = false)]
-pub struct ModelArgs {
-    /// COLMAP sparse model folder.
-    #[arg(long)]
-    pub colmap: Option<PathBuf>,
-    /// BAL problem file.
-    #[arg(long)]
-    pub bal: Option<PathBuf>,
-    /// Bundler v0.3 bundle.out file.
-    #[arg(long)]
-    pub bundler: Option<PathBuf>,
-    /// OpenSfM dataset folder (reconstruction.json + tracks.csv; the largest reconstruction).
-    #[arg(long)]
-    pub opensfm: Option<PathBuf>,
-}
-
-impl ModelArgs {
-    /// The selected source.
-    pub fn source(&self) -> anyhow::Result<SceneSource> {
-        match (&self.colmap, &self.bal, &self.bundler, &self.opensfm) {
-            (Some(dir), None, None, None) => Ok(SceneSource::Colmap(dir.clone())),
-            (None, Some(file), None, None) => Ok(SceneSource::Bal(file.clone())),
-            (None, None, Some(file), None) => Ok(SceneSource::Bundler(file.clone())),
-            (None, None, None, Some(dir)) => Ok(SceneSource::OpenSfm(dir.clone())),
-            _ => anyhow::bail!("give exactly one of --colmap, --bal, --bundler, --opensfm"),
-        }
-    }
 }
 
 /// Arguments of `map stats`.

@@ -19,6 +19,7 @@ use gomatch::Camera;
 use nalgebra::Vector3;
 use serde::Serialize;
 
+use crate::host::ScenesArgs;
 use crate::protocol::{quantiles, scene_samples, ProtocolParams, QuerySample};
 use crate::scene::{median, Image, Scene, SceneSource};
 use crate::synthetic::{collection_scene, synthetic_layout, synthetic_scene, Layout};
@@ -55,31 +56,13 @@ pub enum ScenesCommand {
 /// Arguments of `scenes stats`.
 #[derive(Debug, Clone, ClapArgs)]
 pub struct StatsArgs {
-    /// COLMAP sparse model folder (repeatable).
-    #[arg(long)]
-    pub colmap: Vec<PathBuf>,
-    /// BAL problem file (repeatable).
-    #[arg(long)]
-    pub bal: Vec<PathBuf>,
-    /// Bundler v0.3 bundle.out file (repeatable).
-    #[arg(long)]
-    pub bundler: Vec<PathBuf>,
-    /// OpenSfM dataset folder (repeatable).
-    #[arg(long)]
-    pub opensfm: Vec<PathBuf>,
+    /// The scenes.
+    #[command(flatten)]
+    pub scenes: ScenesArgs,
     /// Every scene of a data folder laid out as `shared/data` (colmap/*, opensfm/*,
     /// bundler/*/bundle.out, bal/*.txt).
     #[arg(long)]
     pub all: Option<PathBuf>,
-    /// Synthetic scenes to generate.
-    #[arg(long, default_value_t = 0)]
-    pub synthetic: u64,
-    /// Seed of the synthetic scene family.
-    #[arg(long, default_value_t = 0)]
-    pub synthetic_seed: u64,
-    /// Synthetic photo collections to generate (`dataset --synthetic-collection`).
-    #[arg(long, default_value_t = 0)]
-    pub synthetic_collection: u64,
     /// Protocol queries per scene.
     #[arg(long, default_value_t = 20)]
     pub queries: usize,
@@ -332,14 +315,7 @@ struct Row {
 }
 
 fn file_sources(args: &StatsArgs) -> anyhow::Result<Vec<SceneSource>> {
-    let mut sources: Vec<SceneSource> = args
-        .colmap
-        .iter()
-        .map(|p| SceneSource::Colmap(p.clone()))
-        .chain(args.bal.iter().map(|p| SceneSource::Bal(p.clone())))
-        .chain(args.bundler.iter().map(|p| SceneSource::Bundler(p.clone())))
-        .chain(args.opensfm.iter().map(|p| SceneSource::OpenSfm(p.clone())))
-        .collect();
+    let mut sources = args.scenes.files();
     if let Some(root) = &args.all {
         sources.extend(data_folder_sources(root)?);
     }
@@ -372,11 +348,12 @@ fn run_stats(args: &StatsArgs) -> anyhow::Result<()> {
         });
     }
     let mut layouts: BTreeMap<String, Distributions> = BTreeMap::new();
-    let seed = args.synthetic_seed;
-    let generated = (0..args.synthetic)
+    let seed = args.scenes.synthetic_seed;
+    let generated = (0..args.scenes.synthetic)
         .map(|i| (synthetic_layout(seed, i), synthetic_scene(seed, i)))
         .chain(
-            (0..args.synthetic_collection).map(|i| (Layout::Collection, collection_scene(seed, i))),
+            (0..args.scenes.synthetic_collection)
+                .map(|i| (Layout::Collection, collection_scene(seed, i))),
         );
     for (layout, scene) in generated {
         let layout = format!("{layout:?}");
@@ -540,7 +517,7 @@ fn plot_groups(path: &Path, groups: &[Row]) -> anyhow::Result<()> {
         .copied()
         .filter(|m| m.0 != "queries")
         .collect();
-    let font = crate::eval::register_font();
+    let font = crate::host::register_font();
     let root = BitMapBackend::new(path, (1500, 1000)).into_drawing_area();
     root.fill(&WHITE)?;
     let panels = root.split_evenly((3, 4));

@@ -19,7 +19,7 @@
 use std::collections::BTreeMap;
 use std::f64::consts::PI;
 
-use gomatch::camera::CameraModel;
+use gomatch::camera::{CameraModel, MODELS};
 use gomatch::{Camera, Pose};
 use nalgebra::{Matrix3, Rotation3, Vector3};
 use rand::seq::SliceRandom;
@@ -750,14 +750,7 @@ fn make_cameras(
         (1600, 1200),
         (1920, 1080),
     ];
-    const MODELS: [CameraModel; 5] = [
-        CameraModel::SimplePinhole,
-        CameraModel::Pinhole,
-        CameraModel::SimpleRadial,
-        CameraModel::Radial,
-        CameraModel::OpenCv,
-    ];
-    let model = MODELS[rng.random_range(0..MODELS.len())];
+    let model = MODELS[rng.random_range(0..MODELS.len())].model;
     let (mut width, mut height) = SIZES[rng.random_range(0..SIZES.len())];
     if rng.random_bool(0.2) {
         std::mem::swap(&mut width, &mut height);
@@ -860,14 +853,17 @@ fn random_intrinsics(
     let k1 = uniform(rng, -0.12, 0.05);
     let k2 = uniform(rng, -0.02, 0.02);
     let (p1, p2) = (normal(rng, 5e-4), normal(rng, 5e-4));
-    let params: Vec<f64> = match model {
-        CameraModel::SimplePinhole => vec![f, cx, cy],
-        CameraModel::Pinhole => vec![f, fy, cx, cy],
-        CameraModel::SimpleRadial => vec![f, cx, cy, k1],
-        CameraModel::Radial => vec![f, cx, cy, k1, k2],
-        CameraModel::OpenCv => vec![f, fy, cx, cy, k1, k2, p1, p2],
-    };
-    Camera::from_colmap(model, width, height, &params)
+    // Every intrinsic drawn, then the model keeps its own parameters of them.
+    let (params, count) = Camera {
+        model,
+        width,
+        height,
+        focal: [f, fy],
+        principal: [cx, cy],
+        distortion: [k1, k2, p1, p2],
+    }
+    .colmap_params();
+    Camera::from_colmap(model, width, height, &params[..count])
         .expect("synthetic intrinsics are finite with a positive focal length")
 }
 
@@ -1202,13 +1198,7 @@ mod tests {
     #[test]
     fn intrinsics_of_every_model_round_trip_inside_the_image() {
         let mut rng = Pcg64Mcg::seed_from_u64(3);
-        for model in [
-            CameraModel::SimplePinhole,
-            CameraModel::Pinhole,
-            CameraModel::SimpleRadial,
-            CameraModel::Radial,
-            CameraModel::OpenCv,
-        ] {
+        for model in MODELS.iter().map(|spec| spec.model) {
             let camera = random_intrinsics(&mut rng, model, 1600, 1200, 70f64.to_radians());
             assert_eq!(camera.model, model);
             for pixel in [[0.0, 0.0], [1600.0, 1200.0], [800.0, 100.0]] {

@@ -5,8 +5,9 @@
 use std::path::Path;
 
 use gomatch::acceptance::{AcceptanceRule, Evidence, FEATURES};
-use gomatch_sim::eval::{evaluate, read_rule, EvalOptions, Matching, Report, CAPACITY};
+use gomatch_sim::eval::{evaluate, read_rule, EvalOptions, Matching, Report};
 use gomatch_sim::fit::{fit, run, threshold_for, Args, Example, FitOutput, Scores};
+use gomatch_sim::host::CAPACITY;
 use gomatch_sim::protocol::ProtocolParams;
 use gomatch_sim::synthetic::synthetic_scene;
 

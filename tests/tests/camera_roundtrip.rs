@@ -1,19 +1,13 @@
 //! Pixel -> bearing -> pixel round trip for every camera model with realistic distortion
 //! (the bearing convention the pose solver relies on).
 
-use gomatch::camera::{Camera, CameraModel};
+use gomatch::camera::{Camera, MODELS};
 use proptest::prelude::*;
 
 /// Intrinsics of a camera of the given model: focal 0.7 to 1.5 image widths, principal
 /// point near the centre, distortion of real lenses (barrel or pincushion).
 fn camera_strategy() -> impl Strategy<Value = Camera> {
-    let models = prop_oneof![
-        Just(CameraModel::SimplePinhole),
-        Just(CameraModel::Pinhole),
-        Just(CameraModel::SimpleRadial),
-        Just(CameraModel::Radial),
-        Just(CameraModel::OpenCv),
-    ];
+    let models = prop::sample::select(MODELS.iter().map(|spec| spec.model).collect::<Vec<_>>());
     (
         models,
         640u32..2000,
@@ -34,14 +28,17 @@ fn camera_strategy() -> impl Strategy<Value = Camera> {
                     width as f64 * (0.5 + offset),
                     height as f64 * (0.5 - offset),
                 );
-                let params: Vec<f64> = match model {
-                    CameraModel::SimplePinhole => vec![f, cx, cy],
-                    CameraModel::Pinhole => vec![f, f * fy_ratio, cx, cy],
-                    CameraModel::SimpleRadial => vec![f, cx, cy, k1],
-                    CameraModel::Radial => vec![f, cx, cy, k1, k2],
-                    CameraModel::OpenCv => vec![f, f * fy_ratio, cx, cy, k1, k2, p1, p2],
-                };
-                Camera::from_colmap(model, width, height, &params).unwrap()
+                // Every intrinsic drawn, then the model keeps its own parameters of them.
+                let (params, count) = Camera {
+                    model,
+                    width,
+                    height,
+                    focal: [f, f * fy_ratio],
+                    principal: [cx, cy],
+                    distortion: [k1, k2, p1, p2],
+                }
+                .colmap_params();
+                Camera::from_colmap(model, width, height, &params[..count]).unwrap()
             },
         )
         .prop_filter(

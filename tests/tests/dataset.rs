@@ -4,6 +4,7 @@
 use std::path::{Path, PathBuf};
 
 use gomatch_sim::dataset::{run, Args};
+use gomatch_sim::host::ScenesArgs;
 use gomatch_sim::protocol::query_sample;
 use gomatch_sim::scene::SceneSource;
 use gomatch_sim::synthetic::synthetic_scene;
@@ -12,13 +13,10 @@ use safetensors::{Dtype, SafeTensors};
 fn args(output: PathBuf) -> Args {
     Args {
         output,
-        colmap: Vec::new(),
-        bal: Vec::new(),
-        bundler: Vec::new(),
-        opensfm: Vec::new(),
-        synthetic: 0,
-        synthetic_seed: 3,
-        synthetic_collection: 0,
+        scenes: ScenesArgs {
+            synthetic_seed: 3,
+            ..ScenesArgs::default()
+        },
         k: 10,
         queries_per_scene: 4,
         seed: 9,
@@ -135,7 +133,7 @@ fn read_and_check(path: &Path) -> Dataset {
 fn synthetic_dataset_round_trips_through_safetensors() {
     let output = temp_file("synthetic");
     let mut arguments = args(output.clone());
-    arguments.synthetic = 2;
+    arguments.scenes.synthetic = 2;
     run(&arguments).unwrap();
     let dataset = read_and_check(&output);
     std::fs::remove_file(&output).unwrap();
@@ -176,7 +174,7 @@ fn real_training_scene_dataset_is_well_formed() {
     let output = temp_file("real");
     let mut arguments = args(output.clone());
     let model = data.join("colmap/wmv_video3");
-    arguments.colmap = vec![model.clone()];
+    arguments.scenes.colmap = vec![model.clone()];
     run(&arguments).unwrap();
     let dataset = read_and_check(&output);
     std::fs::remove_file(&output).unwrap();

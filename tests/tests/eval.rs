@@ -15,8 +15,9 @@ use gomatch::Model;
 use gomatch_sim::eval::{
     curve_label, evaluate, ground_truth_pairs, plot_curves, pose_is_right, protocol_samples,
     report_errors, AcceptanceSummary, EvalOptions, Matching, QueryResult, Report,
-    SinkhornPrecision, TimingsMs, CAPACITY,
+    SinkhornPrecision, TimingsMs,
 };
+use gomatch_sim::host::CAPACITY;
 use gomatch_sim::map::{build_map, map_point_index};
 use gomatch_sim::protocol::ProtocolParams;
 use gomatch_sim::scene::{Scene, SceneSource};

@@ -12,9 +12,10 @@ use gomatch::link::{self, LinkError, LocalizeReply, Request, RequestBody, Respon
 use gomatch::weights::Precision;
 use gomatch::{Localizer, Map, Model};
 use gomatch_sim::device::{run_session, LinkQuery};
-use gomatch_sim::eval::{protocol_samples, CAPACITY};
+use gomatch_sim::eval::protocol_samples;
 use gomatch_sim::faulty_link::{print_report, soak, SoakConfig, SoakReport};
 use gomatch_sim::firmware_data::{firmware_data, FIRMWARE_CAPACITY, FIRMWARE_SEED};
+use gomatch_sim::host::CAPACITY;
 use gomatch_sim::map::build_map;
 use gomatch_sim::protocol::ProtocolParams;
 use gomatch_sim::synthetic::synthetic_scene;

@@ -9,9 +9,9 @@ use gomatch::localizer::view_point_bearings;
 use gomatch::map::Map;
 use gomatch::{Localizer, LocalizerConfig, Model, Query, ViewSelection};
 use gomatch_sim::eval::{
-    default_model_path, evaluate, protocol_samples, query_pixels, EvalOptions, Matching,
-    QueryResult, CAPACITY,
+    evaluate, protocol_samples, query_pixels, EvalOptions, Matching, QueryResult,
 };
+use gomatch_sim::host::{default_model_path, CAPACITY};
 use gomatch_sim::map::{build_map, map_point_index};
 use gomatch_sim::protocol::{
     query_reprojection_error, query_sample, ProtocolParams, QuerySample, ViewSample,
