@@ -91,7 +91,7 @@ mod tests {
     use proptest::prelude::*;
 
     use crate::camera::{Camera, CameraModel};
-    use crate::link::tests_support::{frame, localize_request, CAP};
+    use crate::link::tests_support::{checked, cobs_frame, frame, localize_request, CAP};
     use crate::link::*;
     use crate::localizer::{Failure, MatchCounts, StageTimings, MAX_VIEWS};
     use crate::weights::{ModelConfig, Precision};
@@ -104,6 +104,47 @@ mod tests {
             Device::<1024, { rx_frame_len(1024) }>::BYTES
                 < rx_frame_len(1024) + 8 * 1024 + TX_FRAME_LEN + 128
         );
+    }
+
+    /// A frame decodes to its message only when it is whole, its checksum matches and the
+    /// message uses every byte.
+    #[test]
+    fn frames_decode_only_when_whole_and_checked() {
+        // Info with id 1 is [0x01, 0x00]; with a byte after it, malformed.
+        assert_eq!(
+            decode_frame::<Request<'_>>(&mut checked(&[0x01, 0x00])),
+            Ok(Request {
+                id: 1,
+                body: RequestBody::Info
+            })
+        );
+        assert_eq!(
+            decode_frame::<Request<'_>>(&mut checked(&[0x01, 0x00, 0x05])),
+            Err(LinkError::Malformed)
+        );
+        assert_eq!(
+            decode_frame::<Request<'_>>(&mut [0x07, 0x01, 0x02]),
+            Err(LinkError::Truncated)
+        );
+        // Shorter than a checksum; a changed, a lost and an added byte.
+        assert_eq!(
+            decode_frame::<Request<'_>>(&mut [0x04, 0x01, 0x02, 0x03]),
+            Err(LinkError::Truncated)
+        );
+        let mut info = std::vec![0x01, 0x00];
+        info.extend(crc32fast::hash(&info).to_le_bytes());
+        let mut flipped = info.clone();
+        flipped[0] ^= 0x40;
+        let mut lost = info.clone();
+        lost.remove(3);
+        let mut added = info.clone();
+        added.insert(3, 0x77);
+        for body in [flipped, lost, added] {
+            assert_eq!(
+                decode_frame::<Request<'_>>(&mut cobs_frame(&body)),
+                Err(LinkError::Checksum)
+            );
+        }
     }
 
     /// The largest request of each kind fits [`max_request_len`], its frame

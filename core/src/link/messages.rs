@@ -4,7 +4,7 @@ use core::fmt::Write as _;
 
 use serde::{Deserialize, Serialize};
 
-use super::{KEYPOINT_BYTES, REASON_LEN};
+use super::{narrow, KEYPOINT_BYTES, REASON_LEN};
 use crate::camera::Camera;
 use crate::error::{Error, Input};
 use crate::localizer::{Failure, Localization, MatchCounts, StageTimings, MAX_VIEWS};
@@ -147,7 +147,6 @@ pub struct LocalizeReply {
 
 impl From<&Localization> for LocalizeReply {
     fn from(l: &Localization) -> Self {
-        let narrow = |v: usize| u32::try_from(v).unwrap_or(u32::MAX);
         LocalizeReply {
             outcome: l.outcome.as_ref().map(WirePose::from).map_err(|f| *f),
             counts: l.counts,
@@ -276,7 +275,6 @@ pub enum Rejection {
 
 impl From<&Error> for Rejection {
     fn from(error: &Error) -> Self {
-        let narrow = |v: usize| u32::try_from(v).unwrap_or(u32::MAX);
         match *error {
             Error::NonFinite {
                 input: Input::Keypoints,

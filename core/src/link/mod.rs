@@ -62,3 +62,8 @@ pub const REASON_LEN: usize = 96;
 pub const fn max_request_len(capacity: usize) -> usize {
     REQUEST_OVERHEAD + KEYPOINT_BYTES * capacity
 }
+
+/// A count or size as a `u32` message field, saturated at `u32::MAX`.
+fn narrow(v: usize) -> u32 {
+    u32::try_from(v).unwrap_or(u32::MAX)
+}

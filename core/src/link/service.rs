@@ -6,8 +6,8 @@ use embedded_hal::digital::{ErrorType, OutputPin};
 
 use super::messages::rejected;
 use super::{
-    decode_keypoints, DeviceInfo, LinkError, LocalizeReply, LocalizeRequest, MapInfo, ModelInfo,
-    Rejection, ResponseBody, Views, KEYPOINT_BYTES, PROTOCOL_VERSION,
+    decode_keypoints, narrow, DeviceInfo, LinkError, LocalizeReply, LocalizeRequest, MapInfo,
+    ModelInfo, Rejection, ResponseBody, Views, KEYPOINT_BYTES, PROTOCOL_VERSION,
 };
 use crate::localizer::{Clock, Localizer, LocalizerConfig, Query, ViewSelection, MAX_VIEWS};
 use crate::map::{Map, MAP_VERSION};
@@ -79,7 +79,6 @@ impl<'a, const N: usize, S: PlanScalar, P: OutputPin> Service<'a, N, S, P> {
 
     /// The answer to [`RequestBody::Info`](super::RequestBody::Info) for a receive buffer of `rx_frame_bytes`.
     pub fn info(&self, rx_frame_bytes: usize) -> DeviceInfo {
-        let narrow = |v: usize| u32::try_from(v).unwrap_or(u32::MAX);
         DeviceInfo {
             protocol_version: PROTOCOL_VERSION,
             capacity: narrow(N),
@@ -110,41 +109,13 @@ impl<'a, const N: usize, S: PlanScalar, P: OutputPin> Service<'a, N, S, P> {
         request: &LocalizeRequest<'_>,
         keypoints: &mut [[f32; 2]; N],
     ) -> ResponseBody {
-        let narrow = |v: usize| u32::try_from(v).unwrap_or(u32::MAX);
-        let count = request.keypoints.len() / KEYPOINT_BYTES;
-        if request.keypoints.len() % KEYPOINT_BYTES != 0 {
-            return ResponseBody::Error(LinkError::KeypointBytes {
-                len: narrow(request.keypoints.len()),
-            });
-        }
-        let Some(n) = decode_keypoints(request.keypoints, keypoints) else {
-            return rejected(Rejection::TooManyKeypoints {
-                capacity: narrow(N),
-                requested: narrow(count),
-            });
+        let n = match decode_request_keypoints(request.keypoints, keypoints) {
+            Ok(n) => n,
+            Err(error) => return ResponseBody::Error(error),
         };
-        let views = match &request.views {
-            Views::ImageIds(ids) => ViewSelection::ImageIds(ids.as_slice()),
-            Views::NearPrior {
-                prior,
-                k,
-                max_angle_deg,
-            } => {
-                if usize::from(*k) > MAX_VIEWS {
-                    return rejected(Rejection::TooManyViews {
-                        capacity: MAX_VIEWS as u32,
-                        requested: u32::from(*k),
-                    });
-                }
-                match prior.to_pose() {
-                    Ok(prior) => ViewSelection::NearPrior {
-                        prior,
-                        k: usize::from(*k),
-                        max_angle_deg: *max_angle_deg,
-                    },
-                    Err(e) => return rejected(Rejection::from(&e)),
-                }
-            }
+        let views = match view_selection(&request.views) {
+            Ok(views) => views,
+            Err(rejection) => return rejected(rejection),
         };
         let query = Query {
             keypoints: keypoints.get(..n).unwrap_or(&[]),
@@ -163,6 +134,46 @@ impl<'a, const N: usize, S: PlanScalar, P: OutputPin> Service<'a, N, S, P> {
         match result {
             Ok(localization) => ResponseBody::Localized(LocalizeReply::from(&localization)),
             Err(e) => rejected(Rejection::from(&e)),
+        }
+    }
+}
+
+/// Decodes a request's keypoint bytes into `out`: how many, or the refusal of bytes that
+/// are not whole keypoints or of more keypoints than `out` holds.
+fn decode_request_keypoints(bytes: &[u8], out: &mut [[f32; 2]]) -> Result<usize, LinkError> {
+    if bytes.len() % KEYPOINT_BYTES != 0 {
+        return Err(LinkError::KeypointBytes {
+            len: narrow(bytes.len()),
+        });
+    }
+    decode_keypoints(bytes, out).ok_or(LinkError::Rejected(Rejection::TooManyKeypoints {
+        capacity: narrow(out.len()),
+        requested: narrow(bytes.len() / KEYPOINT_BYTES),
+    }))
+}
+
+/// The localizer's view selection of a request, or the refusal of more than [`MAX_VIEWS`]
+/// views or of a non-finite prior.
+fn view_selection(views: &Views) -> Result<ViewSelection<'_>, Rejection> {
+    match views {
+        Views::ImageIds(ids) => Ok(ViewSelection::ImageIds(ids.as_slice())),
+        Views::NearPrior {
+            prior,
+            k,
+            max_angle_deg,
+        } => {
+            if usize::from(*k) > MAX_VIEWS {
+                return Err(Rejection::TooManyViews {
+                    capacity: MAX_VIEWS as u32,
+                    requested: u32::from(*k),
+                });
+            }
+            let prior = prior.to_pose().map_err(|e| Rejection::from(&e))?;
+            Ok(ViewSelection::NearPrior {
+                prior,
+                k: usize::from(*k),
+                max_angle_deg: *max_angle_deg,
+            })
         }
     }
 }
