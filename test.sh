@@ -1,10 +1,13 @@
 #!/usr/bin/env bash
-# The project's test command: every Rust test of the workspace (release build), then the trainer's
-# PyTorch tests (reference-fixture conformance, agreement with the Rust core through the release
-# gomatch-sim binary, losses, a short training smoke run).
+# The project's test command: every Rust test of the workspace (release build), the core's unit
+# tests without its `link` feature, then the trainer's PyTorch tests (reference-fixture
+# conformance, agreement with the Rust core through the release gomatch-sim binary, losses, a
+# short training smoke run).
 # Tests that need ../shared skip with a message when it is absent.
 set -euo pipefail
 cd "$(dirname "$0")"
 cargo test --workspace --release
+# The core without its default `link` feature (no device link) builds and passes on its own.
+cargo test -p gomatch --release --no-default-features --lib
 cargo build --release -p gomatch-sim -p gomatch-tools
 tools/train/run_tests.sh
