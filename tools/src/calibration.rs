@@ -731,6 +731,14 @@ impl Engine<'_> {
     }
 
     fn run(&mut self, pairs: &[Pair], matches: &[Vec<(usize, usize)>]) -> anyhow::Result<()> {
+        let x = self.descriptors(pairs)?;
+        let (d2, d3) = x.split_at(pairs.len());
+        self.classifier(d2, d3, matches)
+    }
+
+    /// Encoder and attention on every pair (fitting each layer on the way), then the
+    /// L2-normalised descriptors: the query sets', then the database sets'.
+    fn descriptors(&mut self, pairs: &[Pair]) -> anyhow::Result<Vec<Both>> {
         let knn = usize::from(self.config.knn);
         let sets: Vec<&[[f32; 2]]> = pairs
             .iter()
@@ -744,9 +752,7 @@ impl Engine<'_> {
         let (x2, x3) = self.cross_layer(x2, x3)?;
         let x: Vec<Both> = x2.into_iter().chain(x3).collect();
         let x = self.self_layer(1, &x, &graphs)?;
-        let x: Vec<Both> = x.into_iter().map(|b| b.map(l2_normalize)).collect();
-        let (d2, d3) = x.split_at(pairs.len());
-        self.classifier(d2, d3, matches)
+        Ok(x.into_iter().map(|b| b.map(l2_normalize)).collect())
     }
 
     fn encode(&mut self, sets: &[&[[f32; 2]]]) -> anyhow::Result<Vec<Both>> {
@@ -1124,6 +1130,67 @@ fn l2_normalize(mut x: Features) -> Features {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Final descriptors of the core's matcher, by stage.
+    struct Descriptors(Vec<(gomatch::matcher::Stage, Vec<f32>)>);
+
+    impl gomatch::matcher::Observer<f32> for Descriptors {
+        fn features(&mut self, stage: gomatch::matcher::Stage, x: &[f32], _: usize, _: usize) {
+            use gomatch::matcher::Stage;
+            if matches!(stage, Stage::Desc2dL2 | Stage::Desc3dL2) {
+                self.0.push((stage, x.to_vec()));
+            }
+        }
+    }
+
+    /// The calibration's f64 forward pass is the core's network: on the shipped
+    /// checkpoint its L2-normalised descriptors equal the core matcher's (f32) within
+    /// float rounding, so a change to either that the other misses fails here.
+    #[test]
+    fn the_f64_forward_pass_follows_the_cores_matcher() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/gomatch.safetensors");
+        let Ok(checkpoint) = std::fs::read(path) else {
+            println!("SKIPPED: no shipped checkpoint {path}");
+            return;
+        };
+        let (config, tensors) = crate::convert::float_tensors(&checkpoint).expect("checkpoint");
+        let (blob, _) = crate::convert::convert(&checkpoint, Precision::F32).expect("f32 blob");
+        let model = Model::from_bytes(&blob).expect("blob");
+        let pair = synthetic_pairs(1, 3).remove(0);
+        let mut observed = Descriptors(Vec::new());
+        let mut matcher = Box::new(Matcher::<1024, f32>::new());
+        matcher
+            .encode_query(&model, &pair.query)
+            .expect("query encodes");
+        matcher
+            .match_view_observed(&model, &pair.db, &mut observed)
+            .expect("pair matches");
+        let precisions = vec![Precision::F32; tensors.len()];
+        let mut engine = Engine {
+            config,
+            float: &tensors,
+            effective: tensors.clone(),
+            precisions: &precisions,
+            options: FitOptions {
+                scale: ScaleSearch::MaxAbs,
+                correct: false,
+            },
+            int8: vec![None; tensors.len()],
+        };
+        let ours = engine
+            .descriptors(std::slice::from_ref(&pair))
+            .expect("forward pass");
+        assert_eq!(observed.0.len(), 2, "both descriptor sets observed");
+        for ((_, core), f64_pass) in observed.0.iter().zip(&ours) {
+            assert_eq!(core.len(), f64_pass.f.x.len());
+            let worst = core
+                .iter()
+                .zip(&f64_pass.f.x)
+                .map(|(&a, &b)| (f64::from(a) - b).abs())
+                .fold(0.0, f64::max);
+            assert!(worst < 1e-3, "descriptors differ by {worst}");
+        }
+    }
 
     #[test]
     fn synthetic_pairs_look_like_the_fixtures() {
