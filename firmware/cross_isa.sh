@@ -24,7 +24,7 @@ failed=0
 for board in "${boards[@]}"; do
   log="target/$board.log"
   if [ ! -f "$log" ]; then
-    echo "$board: no log $log (run build.sh or qemu.sh $board first)" >&2
+    echo "$board: no log $log (run build.sh for x86_64, qemu.sh $board for an ARM board)" >&2
     failed=1
     continue
   fi

@@ -2,7 +2,9 @@
 //! allocator, no `std`. It embeds an int8 model blob, a small map and one query (as the
 //! device link's request frame) with `include_bytes!`, serves that request through the
 //! link's [`Device`] loop exactly as a device on a UART would, decodes its own reply and
-//! exits with a status that says how it went ([`exit_code`]).
+//! exits with a status that says how it went ([`exit_code`]). It prints the reply's bytes
+//! with the stage timings cleared, which must be the same on every board and on the host
+//! (`firmware/cross_isa.sh`).
 //!
 //! Workspace and link buffers are `static`s: `Localizer<CAPACITY, f16>` and
 //! `Device<CAPACITY, _>` (`CAPACITY` 256, 1024 on AArch64).
