@@ -41,9 +41,10 @@ image=target/x86_64-unknown-linux-gnu/release/gomatch-firmware
 ls -l "$image"
 size -A "$image" | grep -E '^\.(text|rodata|data|bss) ' || true
 
+# The output is kept in target/x86_64.log for firmware/cross_isa.sh.
 set +e
-"$image"
-status=$?
+"$image" | tee target/x86_64.log
+status=${PIPESTATUS[0]}
 set -e
 echo "firmware image exited with status $status"
 for ok in $expected; do

@@ -41,8 +41,9 @@ ls -l "$image"
 
 set +e
 start=$(date +%s)
-timeout "${QEMU_TIMEOUT:-1200}" "${qemu[@]}" "${semihosting[@]}" -kernel "$image"
-status=$?
+# The output (semihosting writes to QEMU's stderr) is kept in target/<board>.log for firmware/cross_isa.sh.
+timeout "${QEMU_TIMEOUT:-1200}" "${qemu[@]}" "${semihosting[@]}" -kernel "$image" 2>&1 | tee "target/$board.log"
+status=${PIPESTATUS[0]}
 set -e
 echo "$board image exited with status $status after $(( $(date +%s) - start )) s of QEMU wall time"
 if [ "$status" != 0 ]; then

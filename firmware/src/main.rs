@@ -2,7 +2,9 @@
 //! allocator, no `std`. It embeds an int8 model blob, a small map and one query (as the
 //! device link's request frame) with `include_bytes!`, serves that request through the
 //! link's [`Device`] loop exactly as a device on a UART would, decodes its own reply and
-//! exits with a status that says how it went ([`exit_code`]).
+//! exits with a status that says how it went ([`exit_code`]). It prints the reply's bytes
+//! with the stage timings cleared, which must be the same on every board and on the host
+//! (`firmware/cross_isa.sh`).
 //!
 //! Workspace and link buffers are `static`s: `Localizer<CAPACITY, f16>` and
 //! `Device<CAPACITY, _>` (`CAPACITY` 256, 1024 on AArch64).
@@ -172,6 +174,7 @@ fn run(
     let Ok(response) = link::decode_frame::<Response>(&mut io.reply[..io.reply_len]) else {
         return (exit_code::DATA_INVALID, None);
     };
+    print_reply_bytes(&response);
     match response.body {
         ResponseBody::Localized(reply) => {
             let code = match reply.outcome.map(|p| p.to_pose()) {
@@ -283,6 +286,45 @@ fn print_counts(total: u64, timings: Option<&StageTimings>) {
         for (name, kilo) in stages {
             print(format_args!("instructions (thousands), {name}: {kilo}"));
         }
+    }
+}
+
+/// Reply bytes per printed line: 80 hex digits, inside a [`Line`] with its label.
+const REPLY_BYTES_PER_LINE: usize = 40;
+
+/// Prints the reply's postcard message with its stage timings cleared (the one field that
+/// depends on the machine) as numbered hex lines `reply bytes (timings cleared) i/n: ...`;
+/// `firmware/cross_isa.sh` compares them across boards and with the host's
+/// (`gomatch-sim firmware-reply`, `firmware/data/reply.hex`).
+fn print_reply_bytes(response: &Response) {
+    let mut cleared = response.clone();
+    if let ResponseBody::Localized(reply) = &mut cleared.body {
+        reply.timings = None;
+    }
+    let mut buffer = [0u8; link::MAX_RESPONSE_LEN];
+    let Ok(bytes) = postcard::to_slice(&cleared, &mut buffer) else {
+        print(format_args!(
+            "reply bytes: longer than {} bytes",
+            link::MAX_RESPONSE_LEN
+        ));
+        return;
+    };
+    let lines = bytes.len().div_ceil(REPLY_BYTES_PER_LINE);
+    for (i, chunk) in bytes.chunks(REPLY_BYTES_PER_LINE).enumerate() {
+        print(format_args!(
+            "reply bytes (timings cleared) {}/{lines}: {}",
+            i + 1,
+            Hex(chunk)
+        ));
+    }
+}
+
+/// Lower-case hex digits of a byte string.
+struct Hex<'a>(&'a [u8]);
+
+impl core::fmt::Display for Hex<'_> {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        self.0.iter().try_for_each(|b| write!(f, "{b:02x}"))
     }
 }
 

@@ -35,3 +35,4 @@ pub mod fit;
 pub mod device;
 pub mod faulty_link;
 pub mod firmware_data;
+pub mod firmware_reply;

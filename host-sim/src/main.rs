@@ -35,6 +35,8 @@ enum Command {
     Device(gomatch_sim::device::Args),
     /// Write the firmware image's embedded map, query and ground truth.
     FirmwareData(gomatch_sim::firmware_data::Args),
+    /// Print the host's reply bytes to the firmware image's request (timings cleared).
+    FirmwareReply(gomatch_sim::firmware_reply::Args),
     /// Localize photos (keypoints and camera) against a map blob.
     Localize(gomatch_sim::localize::Args),
 }
@@ -52,6 +54,7 @@ fn main() -> anyhow::Result<()> {
         Command::FitAcceptance(args) => gomatch_sim::fit::run(&args)?,
         Command::Device(args) => gomatch_sim::device::run(&args)?,
         Command::FirmwareData(args) => gomatch_sim::firmware_data::run(&args)?,
+        Command::FirmwareReply(args) => gomatch_sim::firmware_reply::run(&args)?,
         Command::Localize(args) => {
             gomatch_sim::localize::run(&args)?;
         }

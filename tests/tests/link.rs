@@ -3,7 +3,9 @@
 //! direct `localize` call; the retrying host over a line that drops, flips, duplicates and
 //! truncates bytes accepts only correct replies and never hangs (a soak; the 100,000
 //! request run is ignored by default); `firmware-data` regenerates the firmware image's
-//! committed files byte for byte. Localization on the synthetic scene needs the reference
+//! committed files byte for byte, and the host's reply to them (timings cleared) is the
+//! committed `firmware/data/reply.hex` that the firmware images on x86_64, Cortex-M7 and
+//! AArch64 must print (`firmware/cross_isa.sh`). Localization on the synthetic scene needs the reference
 //! fixture weights (SKIPPED without `shared/`).
 
 use std::path::Path;
@@ -15,6 +17,7 @@ use gomatch_sim::device::{run_session, LinkQuery};
 use gomatch_sim::eval::protocol_samples;
 use gomatch_sim::faulty_link::{print_report, soak, SoakConfig, SoakReport};
 use gomatch_sim::firmware_data::{firmware_data, FIRMWARE_CAPACITY, FIRMWARE_SEED};
+use gomatch_sim::firmware_reply::{firmware_reply_from_files, reply_lines, AARCH64_CAPACITY};
 use gomatch_sim::host::CAPACITY;
 use gomatch_sim::map::build_map;
 use gomatch_sim::protocol::ProtocolParams;
@@ -137,6 +140,29 @@ fn firmware_data_regenerates_the_committed_files() {
     assert_eq!(n, data.sample.keypoints.len());
     assert_eq!(localize.camera, data.sample.camera);
     assert_eq!(data.truth.len(), 13 * 8);
+}
+
+/// The host's reply to the firmware's embedded request, with the shipped int8 model and
+/// `f16` Sinkhorn storage, is the committed `firmware/data/reply.hex` byte for byte at both
+/// capacities the images use (256: Cortex-M7 and x86_64; 1024: AArch64), and it localizes.
+#[test]
+fn firmware_reply_matches_the_committed_hex() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let data = root.join("firmware/data");
+    let model = root.join("models/gomatch-int8.bin");
+    let committed = std::fs::read_to_string(data.join("reply.hex")).expect("reply.hex");
+    for capacity in [FIRMWARE_CAPACITY, AARCH64_CAPACITY] {
+        let bytes = firmware_reply_from_files(&data, &model, capacity).expect("served");
+        assert_eq!(reply_lines(&bytes), committed, "capacity {capacity}");
+        let (response, []) = postcard::take_from_bytes::<link::Response>(&bytes).expect("decodes")
+        else {
+            panic!("trailing bytes");
+        };
+        let ResponseBody::Localized(reply) = response.body else {
+            panic!("not a localization reply: {:?}", response.body);
+        };
+        assert!(reply.outcome.is_ok() && reply.timings.is_none());
+    }
 }
 
 /// Runs a soak and checks what the link guarantees: every accepted reply equals the

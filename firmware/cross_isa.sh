@@ -1,0 +1,39 @@
+#!/usr/bin/env bash
+# Bit-identical across machines: compares the reply bytes (stage timings cleared) that the firmware
+# images printed on x86_64 (build.sh), Cortex-M7 and AArch64 (qemu.sh), kept in
+# firmware/target/<board>.log, with the host's, firmware/data/reply.hex (written by
+# `cargo run --release -p gomatch-sim -- firmware-reply --out firmware/data/reply.hex`).
+#
+#   bash firmware/cross_isa.sh                # after build.sh and both qemu.sh runs
+#   bash firmware/cross_isa.sh x86_64         # only the boards named
+#
+# Fails with a diff when a board's bytes differ from the host's or its log is absent.
+set -euo pipefail
+cd "$(dirname "$0")"
+
+boards=("$@")
+[ ${#boards[@]} -gt 0 ] || boards=(x86_64 cortex-m7 aarch64)
+
+if [ ! -f ../models/gomatch-int8.bin ]; then
+  echo "SKIPPED: no shipped model ../models/gomatch-int8.bin (the images were not run)"
+  exit 0
+fi
+
+hex_digits=$(grep -o '[0-9a-f]*$' data/reply.hex | tr -d '\n' | wc -c)
+failed=0
+for board in "${boards[@]}"; do
+  log="target/$board.log"
+  if [ ! -f "$log" ]; then
+    echo "$board: no log $log (run build.sh for x86_64, qemu.sh $board for an ARM board)" >&2
+    failed=1
+    continue
+  fi
+  if diff -u --label "host (data/reply.hex)" --label "$board ($log)" \
+    data/reply.hex <(grep '^reply bytes' "$log"); then
+    echo "$board: reply bytes identical to the host's ($((hex_digits / 2)) bytes)"
+  else
+    echo "$board: reply bytes differ from the host's" >&2
+    failed=1
+  fi
+done
+exit "$failed"
