@@ -229,9 +229,32 @@ impl DatasetWriter {
         for (key, value) in extra {
             metadata.insert((*key).to_string(), value.clone());
         }
-        safetensors::serialize_to_file(tensors, Some(metadata), path)
+        let bytes = safetensors::serialize(tensors, Some(metadata))?;
+        std::fs::write(path, sorted_header(bytes)?)
             .with_context(|| format!("writing {}", path.display()))
     }
+}
+
+/// The same safetensors file with its JSON header's keys sorted: `safetensors` writes the
+/// metadata from a `HashMap`, whose order changes from run to run, and the dataset must be
+/// bit-identical for the same inputs. The tensors' byte offsets are relative to the data
+/// after the header, so only the header (padded with spaces to 8 bytes) is rewritten.
+fn sorted_header(bytes: Vec<u8>) -> anyhow::Result<Vec<u8>> {
+    let (length, rest) = bytes
+        .split_first_chunk::<8>()
+        .context("safetensors output without a header length")?;
+    let length = usize::try_from(u64::from_le_bytes(*length))?;
+    let (header, data) = rest
+        .split_at_checked(length)
+        .context("safetensors header longer than the output")?;
+    let header: BTreeMap<String, serde_json::Value> = serde_json::from_slice(header)?;
+    let mut json = serde_json::to_vec(&header)?;
+    json.resize(json.len().next_multiple_of(8), b' ');
+    let mut out = Vec::with_capacity(8 + json.len() + data.len());
+    out.extend_from_slice(&(json.len() as u64).to_le_bytes());
+    out.extend_from_slice(&json);
+    out.extend_from_slice(data);
+    Ok(out)
 }
 
 fn sources(args: &ScenesArgs) -> Vec<Source> {

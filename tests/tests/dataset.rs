@@ -135,6 +135,12 @@ fn synthetic_dataset_round_trips_through_safetensors() {
     let mut arguments = args(output.clone());
     arguments.scenes.synthetic = 2;
     run(&arguments).unwrap();
+    let first = std::fs::read(&output).unwrap();
+    run(&arguments).unwrap();
+    assert!(
+        std::fs::read(&output).unwrap() == first,
+        "the same arguments write the same bytes"
+    );
     let dataset = read_and_check(&output);
     std::fs::remove_file(&output).unwrap();
     assert_eq!(dataset.scenes, vec!["synthetic/0000", "synthetic/0001"]);
