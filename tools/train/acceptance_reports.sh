@@ -2,8 +2,10 @@
 # Evaluation reports for fitting the acceptance rule (docs/evaluation.md, "Acceptance rule"): runs
 # `gomatch-sim eval --k 10 --seed 0` with the shipped int8 model on every training scene of ../shared/data
 # that has real outlier keypoints (COLMAP and OpenSfM; the validation scenes are never used) and writes
-# OUT_DIR/<name>.json (default models/acceptance/train), then fits the rule on them and checks it on the
-# validation reports of tools/train/eval_all.sh (models/eval-all/*-int8.json):
+# OUT_DIR/<name>.json (default models/acceptance/train-all), prints the acceptance figures of the rule the
+# reports were written with (tools/train/acceptance_table.py), then fits a rule on them and checks it on the
+# validation reports of tools/train/eval_all.sh (models/eval-all/*-int8.json), writing it to RULE (default
+# OUT_DIR/../refit-rule.json, its log beside it as .txt; copy it into AcceptanceRule::FITTED to ship it):
 #
 #   tools/train/acceptance_reports.sh [OUT_DIR]
 #
@@ -12,7 +14,7 @@
 # exists is kept (delete it to re-run), so an interrupted run resumes.
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/../.." && pwd)
-out=${1:-$repo/models/acceptance/train}
+out=${1:-$repo/models/acceptance/train-all}
 queries=${QUERIES:-40}
 threads=${THREADS:-1}
 model=${MODEL:-$repo/models/gomatch-int8.bin}
@@ -33,5 +35,7 @@ for dir in "$data"/colmap/* "$data"/opensfm/*; do
   "$bin" eval --"$kind" "$dir" --model "$model" --k 10 --queries "$queries" --seed 0 --threads "$threads" \
     --json "$out/$name.json" >"$out/$name.log" 2>&1 || echo "eval failed on $kind/$name (see $out/$name.log)"
 done
+python3 "$repo/tools/train/acceptance_table.py" "$out"/*.json
+rule=${RULE:-$(dirname "$out")/refit-rule.json}
 "$bin" fit-acceptance --reports "$out"/*.json --check "$repo"/models/eval-all/*-int8.json \
-  --out "$repo/models/acceptance/rule.json" | tee "$repo/models/acceptance/fit.txt"
+  --out "$rule" | tee "${rule%.json}.txt"
