@@ -9,13 +9,13 @@
 #
 #   tools/train/acceptance_reports.sh [OUT_DIR]
 #
-# Environment: QUERIES per scene (default 40), THREADS (default 1), MODEL (default models/gomatch-int8.bin),
+# Environment: QUERIES per scene (default 25), THREADS (default 1), MODEL (default models/gomatch-int8.bin),
 # BIN (a gomatch-sim binary to use instead of building target/release/gomatch-sim). A scene whose report
 # exists is kept (delete it to re-run), so an interrupted run resumes.
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/../.." && pwd)
 out=${1:-$repo/models/acceptance/train-all}
-queries=${QUERIES:-40}
+queries=${QUERIES:-25}
 threads=${THREADS:-1}
 model=${MODEL:-$repo/models/gomatch-int8.bin}
 data="$repo/../shared/data"
