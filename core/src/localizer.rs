@@ -706,12 +706,7 @@ mod tests {
     }
 
     fn fixture() -> Fixture {
-        let points: Vec<[f32; 3]> = (0..80)
-            .map(|i| {
-                let (u, v) = ((i % 10) as f32 * 0.3 - 1.35, (i / 10) as f32 * 0.3 - 1.05);
-                [u, v, 5.0 + 0.3 * libm::sinf(3.0 * u + 2.0 * v)]
-            })
-            .collect();
+        let points = crate::test_scene::wavy_surface();
         let all: Vec<u32> = (0..80).collect();
         let few: Vec<u32> = (0..8).collect();
         let views = [

@@ -91,3 +91,14 @@ pub fn transform_points(transform: &Pose, points: &[[f64; 3]]) -> Vec<[f64; 3]> 
         })
         .collect()
 }
+
+/// 80 points on a wavy surface about 5 units in front of the origin, a 10 x 8 grid: the
+/// map of the localizer's and the link's unit tests.
+pub fn wavy_surface() -> Vec<[f32; 3]> {
+    (0..80)
+        .map(|i| {
+            let (u, v) = ((i % 10) as f32 * 0.3 - 1.35, (i / 10) as f32 * 0.3 - 1.05);
+            [u, v, 5.0 + 0.3 * libm::sinf(3.0 * u + 2.0 * v)]
+        })
+        .collect()
+}

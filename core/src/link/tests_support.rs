@@ -72,12 +72,7 @@ pub(super) fn fixture() -> (Vec<u8>, Vec<u8>, Vec<[f32; 2]>) {
     let mut model = std::vec![0u8; 64 * 1024];
     let len = blob(&TINY, 5, &mut model);
     model.truncate(len);
-    let points: Vec<[f32; 3]> = (0..80)
-        .map(|i| {
-            let (u, v) = ((i % 10) as f32 * 0.3 - 1.35, (i / 10) as f32 * 0.3 - 1.05);
-            [u, v, 5.0 + 0.3 * libm::sinf(3.0 * u + 2.0 * v)]
-        })
-        .collect();
+    let points = crate::test_scene::wavy_surface();
     let all: Vec<u32> = (0..80).collect();
     let views = [(10, -0.3), (20, 0.3)].map(|(image_id, x)| MapViewEntry {
         image_id,
