@@ -87,6 +87,22 @@ pub struct ModelConfig {
 }
 
 impl ModelConfig {
+    /// A tiny configuration for tests and simulations that run many localizations: d = 8,
+    /// one residual block each, 2 heads, k = 3 (the reference's Sinkhorn settings).
+    pub const TINY: ModelConfig = ModelConfig {
+        feature_dim: 8,
+        encoder_blocks: 1,
+        classifier_dim: 8,
+        classifier_blocks: 1,
+        heads: 2,
+        knn: 3,
+        sinkhorn_iters: 20,
+        sinkhorn_eps: 0.1,
+        sinkhorn_stop: 1e-6,
+        match_threshold: 0.5,
+        bin_score: 1.0,
+    };
+
     /// The configuration of the paper and the reference checkpoint.
     pub const REFERENCE: ModelConfig = ModelConfig {
         feature_dim: 128,
@@ -1119,20 +1135,8 @@ pub(crate) mod tests_support {
         TensorRecord, HEADER_BYTES,
     };
 
-    /// A small configuration for end-to-end tests: d = 8, one block each, 2 heads, k = 3.
-    pub const TINY: ModelConfig = ModelConfig {
-        feature_dim: 8,
-        encoder_blocks: 1,
-        classifier_dim: 8,
-        classifier_blocks: 1,
-        heads: 2,
-        knn: 3,
-        sinkhorn_iters: 20,
-        sinkhorn_eps: 0.1,
-        sinkhorn_stop: 1e-6,
-        match_threshold: 0.5,
-        bin_score: 1.0,
-    };
+    /// A small configuration for end-to-end tests ([`ModelConfig::TINY`]).
+    pub const TINY: ModelConfig = ModelConfig::TINY;
 
     /// Writes a valid blob of `config` with pseudo-random f32 weights in [-0.5, 0.5)
     /// into `out`; returns its length.

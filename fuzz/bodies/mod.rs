@@ -232,14 +232,20 @@ fn repair_envelope(kind: BlobKind, mode: u8, blob: &mut [u8]) {
     }
 }
 
+/// The blob after the first (mode) byte, its envelope repaired as that byte asks.
+fn repaired(kind: BlobKind, data: &[u8]) -> Option<Vec<u8>> {
+    let (&mode, blob) = data.split_first()?;
+    let mut blob = blob.to_vec();
+    repair_envelope(kind, mode, &mut blob);
+    Some(blob)
+}
+
 /// The model blob, its envelope repaired as the first byte asks ([`repair_envelope`]);
 /// when the blob decodes, a localization runs on it (the forward pass).
 pub fn model_blob(data: &[u8]) {
-    let Some((&mode, blob)) = data.split_first() else {
+    let Some(blob) = repaired(BlobKind::Model, data) else {
         return;
     };
-    let mut blob = blob.to_vec();
-    repair_envelope(BlobKind::Model, mode, &mut blob);
     let Ok(model) = Model::from_bytes(&blob) else {
         return;
     };
@@ -251,11 +257,9 @@ pub fn model_blob(data: &[u8]) {
 /// The map blob, its envelope repaired as the first byte asks ([`repair_envelope`]); when
 /// the blob decodes, every accessor runs on every index, and a localization.
 pub fn map_blob(data: &[u8]) {
-    let Some((&mode, blob)) = data.split_first() else {
+    let Some(blob) = repaired(BlobKind::Map, data) else {
         return;
     };
-    let mut blob = blob.to_vec();
-    repair_envelope(BlobKind::Map, mode, &mut blob);
     let Ok(map) = Map::from_bytes(&blob) else {
         return;
     };

@@ -10,21 +10,6 @@ use crate::colmap::{parse_cameras_txt, parse_images_txt, parse_points_txt};
 use crate::map::build_map;
 use crate::scene::Scene;
 
-/// A model configuration with `d = 8`, one block each, 2 heads, `k = 3`.
-pub const TINY_CONFIG: ModelConfig = ModelConfig {
-    feature_dim: 8,
-    encoder_blocks: 1,
-    classifier_dim: 8,
-    classifier_blocks: 1,
-    heads: 2,
-    knn: 3,
-    sinkhorn_iters: 20,
-    sinkhorn_eps: 0.1,
-    sinkhorn_stop: 1e-6,
-    match_threshold: 0.5,
-    bin_score: 1.0,
-};
-
 /// Image ids of the two views.
 pub const TINY_VIEWS: [u32; 2] = [10, 20];
 /// Focal length and principal point of the camera (640 x 480 pixels).
@@ -32,7 +17,7 @@ const FOCAL: f64 = 500.0;
 const CENTRE: [f64; 2] = [320.0, 240.0];
 const POINTS: usize = 80;
 
-/// A [`TINY_CONFIG`] blob in f32 with weights in [-0.5, 0.5) drawn from `seed`.
+/// A [`ModelConfig::TINY`] blob in f32 with weights in [-0.5, 0.5) drawn from `seed`.
 pub fn tiny_model_blob(seed: u32) -> anyhow::Result<Vec<u8>> {
     let mut state = seed;
     let mut next = move || {
@@ -40,7 +25,7 @@ pub fn tiny_model_blob(seed: u32) -> anyhow::Result<Vec<u8>> {
         (state >> 8) as f32 / (1u32 << 24) as f32 - 0.5
     };
     let tensors: Vec<FloatLinear> = (0..)
-        .map_while(|i| tensor_spec(&TINY_CONFIG, i))
+        .map_while(|i| tensor_spec(&ModelConfig::TINY, i))
         .map(|spec| FloatLinear {
             rows: spec.rows,
             cols: spec.cols,
@@ -50,7 +35,7 @@ pub fn tiny_model_blob(seed: u32) -> anyhow::Result<Vec<u8>> {
                 .collect(),
         })
         .collect();
-    write_blob(&TINY_CONFIG, &Options::new(Precision::F32), &tensors)
+    write_blob(&ModelConfig::TINY, &Options::new(Precision::F32), &tensors)
 }
 
 /// The 3D points: a wavy 10 x 8 grid about 5 units in front of the views.
