@@ -230,11 +230,19 @@ fn ground_truth_pairs_name_the_map_points_of_the_views() {
     }
 }
 
+/// The shipped int8 model's bytes, or `None` (with a SKIPPED line) without `models/`.
+fn shipped_int8_model() -> Option<Vec<u8>> {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/gomatch-int8.bin");
+    let blob = std::fs::read(&path).ok();
+    if blob.is_none() {
+        println!("SKIPPED: no shipped model at {}", path.display());
+    }
+    blob
+}
+
 #[test]
 fn correct_matches_are_counted_among_the_merged_matches_and_inliers() {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/gomatch-int8.bin");
-    let Ok(blob) = std::fs::read(&path) else {
-        println!("SKIPPED: no shipped model at {}", path.display());
+    let Some(blob) = shipped_int8_model() else {
         return;
     };
     let model = Model::from_bytes(&blob).unwrap();
@@ -288,9 +296,7 @@ fn correct_matches_are_counted_among_the_merged_matches_and_inliers() {
 /// and a rule that refuses everything leaves the candidates as they were.
 #[test]
 fn acceptance_counts_are_consistent_with_the_queries() {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/gomatch-int8.bin");
-    let Ok(blob) = std::fs::read(&path) else {
-        println!("SKIPPED: no shipped model at {}", path.display());
+    let Some(blob) = shipped_int8_model() else {
         return;
     };
     let model = Model::from_bytes(&blob).unwrap();
