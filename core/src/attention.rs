@@ -184,11 +184,13 @@ fn edge_conv<F: Fma>(
 ) {
     let n = input.points();
     let channels = centre.rows();
+    linear(centre, input, 0..channels, |r, i0, v| {
+        store(out, n, r, i0, v)
+    });
     let chunk = chunk_rows(centre.cols(), rows.len(), n);
     let mut r0 = 0;
     while r0 < channels {
         let r1 = (r0 + chunk).min(channels);
-        linear(centre, input, r0..r1, |r, i0, v| store(out, n, r, i0, v));
         linear(neighbour, input, r0..r1, |r, i0, v| {
             store(rows, n, r - r0, i0, v)
         });

@@ -112,6 +112,9 @@ impl WeightRows for PointRows<'_> {
     fn bias(&self, _row: usize) -> f32 {
         0.0
     }
+    fn int8_row(&self, _row: usize) -> Option<&[u8]> {
+        None
+    }
 }
 
 /// Squared norm of every point of a channel-major `channels x n` matrix.

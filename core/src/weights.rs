@@ -476,6 +476,16 @@ impl<'a> Linear<'a> {
         }
     }
 
+    /// The stored int8 weights of row `row`, columns `start..start + len` (two's complement
+    /// bytes, zero-copy), or `None` unless the layer is int8.
+    pub fn int8_row(&self, row: usize, start: usize, len: usize) -> Option<&'a [u8]> {
+        let first = row * self.cols + start;
+        match self.precision {
+            Precision::Int8 => self.weights.get(first..first + len),
+            Precision::F32 | Precision::F16 => None,
+        }
+    }
+
     /// Scale applied to the accumulated product of row `row` (1 unless int8).
     pub fn scale(&self, row: usize) -> f32 {
         read_f32(self.scales, row).unwrap_or(1.0)

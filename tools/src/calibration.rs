@@ -1158,7 +1158,10 @@ mod tests {
         let model = Model::from_bytes(&blob).expect("blob");
         let pair = synthetic_pairs(1, 3).remove(0);
         let mut observed = Descriptors(Vec::new());
-        let mut matcher = Box::new(Matcher::<1024, f32>::new());
+        // A static, like the other matchers here: 7.5 MB is not for a test thread's stack.
+        static MATCHER: std::sync::Mutex<Matcher<1024, f32>> =
+            std::sync::Mutex::new(Matcher::new());
+        let mut matcher = MATCHER.lock().expect("matcher");
         matcher
             .encode_query(&model, &pair.query)
             .expect("query encodes");

@@ -10,11 +10,20 @@
 use core::sync::atomic::{AtomicU8, Ordering};
 
 use super::fma::mul_add;
+use super::integer::{self, BlockSums, TilePairs, WeightPairs};
 
-/// A fused multiply-add `a * b + c` with a single rounding.
+/// The CPU's multiply-add instructions: a fused multiply-add `a * b + c` with a single
+/// rounding (the f32 kernels) and the exact int16 pair multiply-add (the integer kernel).
 pub trait Fma: Copy {
     /// `a * b + c`, rounded once.
     fn mul_add(self, a: f32, b: f32, c: f32) -> f32;
+
+    /// The integer kernel's register block at point `p` of a tile
+    /// ([`integer::block_sums`]; exact, so every implementation gives the same sums).
+    #[inline(always)]
+    fn pair_sums(self, w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
+        integer::block_sums(w, x, p)
+    }
 }
 
 /// [`super::fma::mul_add`]: the instruction where the build enables it, else libm's exact
@@ -72,6 +81,11 @@ impl Fma for X86Fma {
         // intrinsics only touch registers.
         unsafe { _mm_cvtss_f32(_mm_fmadd_ss(_mm_set_ss(a), _mm_set_ss(b), _mm_set_ss(c))) }
     }
+
+    #[inline(always)]
+    fn pair_sums(self, w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
+        integer::block_sums_avx2(self, w, x, p)
+    }
 }
 
 /// `cpuid` leaf 1: FMA, OSXSAVE and AVX; `xgetbv`: the OS saves the SSE and AVX state;
@@ -107,6 +121,13 @@ pub fn with_fma<R>(kernel: impl Kernel<R>) -> R {
     if let Some(fma) = X86Fma::detect() {
         return run_avx2_fma(fma, kernel);
     }
+    run_portable(kernel)
+}
+
+/// Runs `kernel` with [`Portable`] in a frame of its own (so that callers do not carry the
+/// kernel's buffers in theirs next to the AVX2 variant's).
+#[inline(never)]
+fn run_portable<R>(kernel: impl Kernel<R>) -> R {
     kernel.run(Portable)
 }
 

@@ -11,6 +11,7 @@
 //! so does this kernel.
 
 use super::dispatch::{with_fma, Fma, Kernel};
+use super::integer::linear_int8;
 use crate::weights::Linear;
 
 /// Output rows computed together.
@@ -35,6 +36,9 @@ pub trait WeightRows {
     fn scale(&self, row: usize) -> f32;
     /// Added after the scale.
     fn bias(&self, row: usize) -> f32;
+    /// Row `row`'s stored int8 weights (`cols()` bytes) when the layer is int8: it then runs
+    /// on the integer kernel ([`super::integer`]).
+    fn int8_row(&self, row: usize) -> Option<&[u8]>;
 }
 
 impl WeightRows for Linear<'_> {
@@ -52,6 +56,9 @@ impl WeightRows for Linear<'_> {
     }
     fn bias(&self, row: usize) -> f32 {
         Linear::bias(self, row)
+    }
+    fn int8_row(&self, row: usize) -> Option<&[u8]> {
+        Linear::int8_row(self, row, 0, Linear::cols(self))
     }
 }
 
@@ -81,6 +88,9 @@ impl WeightRows for ColumnSlice<'_, '_> {
     }
     fn bias(&self, _row: usize) -> f32 {
         0.0
+    }
+    fn int8_row(&self, row: usize) -> Option<&[u8]> {
+        self.layer.int8_row(row, self.start, self.cols)
     }
 }
 
@@ -144,6 +154,20 @@ impl<'a> Input<'a> {
     pub fn points(&self) -> usize {
         self.n
     }
+
+    /// Channels of each part.
+    pub fn part_channels(&self) -> [usize; 3] {
+        self.rows
+    }
+
+    /// Channel `channel` of part `part` at points `i0..i0 + len` (fewer where the part is
+    /// too short).
+    #[inline(always)]
+    pub fn channel(&self, part: usize, channel: usize, i0: usize, len: usize) -> &'a [f32] {
+        let first = self.start + i0 + channel * self.stride;
+        let values = self.parts[part].get(first..).unwrap_or(&[]);
+        values.get(..len).unwrap_or(values)
+    }
 }
 
 /// Decoded weights kept at once (8 KiB of stack): a panel of `PANEL_FLOATS / cols` rows.
@@ -169,7 +193,9 @@ pub fn chunk_rows(cols: usize, scratch: usize, n: usize) -> usize {
 
 /// Computes output rows `rows` of `w` applied to `input` and hands each finished block of
 /// up to [`COL_BLOCK`] points to `emit(row, first_point, values)` (`values.len()` is the
-/// number of valid points), in no particular order. The caller keeps
+/// number of valid points), in no particular order. int8 layers on sets of at least
+/// [`SMALL_SET`] points run on the integer kernel ([`super::integer`]); everything else on
+/// the f32 one described here. The caller keeps
 /// `w.cols() == input.channels() <= MAX_INPUT` and every part long enough for its rows
 /// (a part too short reads as zeros).
 ///
@@ -184,26 +210,56 @@ pub fn linear<W: WeightRows>(
     rows: core::ops::Range<usize>,
     emit: impl FnMut(usize, usize, &[f32]),
 ) {
-    with_fma(LinearKernel {
+    let call = LinearCall {
         w,
         input,
         rows,
         emit,
-    });
+    };
+    // Two entries, so that each kernel's buffers have a stack frame of their own.
+    if call.is_integer() {
+        with_fma(IntegerKernel(call));
+    } else {
+        with_fma(FloatKernel(call));
+    }
 }
 
 /// The arguments of one [`linear`] call.
-struct LinearKernel<'k, 'a, W, E> {
+struct LinearCall<'k, 'a, W, E> {
     w: &'k W,
     input: &'k Input<'a>,
     rows: core::ops::Range<usize>,
     emit: E,
 }
 
-impl<W: WeightRows, E: FnMut(usize, usize, &[f32])> Kernel<()> for LinearKernel<'_, '_, W, E> {
+impl<W: WeightRows, E> LinearCall<'_, '_, W, E> {
+    /// Whether the call runs on the integer kernel: int8 weights on a set of at least
+    /// [`SMALL_SET`] points.
+    #[inline(always)]
+    fn is_integer(&self) -> bool {
+        self.input.set >= SMALL_SET && self.w.int8_row(self.rows.start).is_some()
+    }
+}
+
+/// A [`LinearCall`] on the f32 kernel.
+struct FloatKernel<'k, 'a, W, E>(LinearCall<'k, 'a, W, E>);
+
+impl<W: WeightRows, E: FnMut(usize, usize, &[f32])> Kernel<()> for FloatKernel<'_, '_, W, E> {
     #[inline(always)]
     fn run<F: Fma>(self, fma: F) {
-        linear_with(fma, self.w, self.input, self.rows, self.emit);
+        let c = self.0;
+        linear_f32(fma, c.w, c.input, c.rows, c.emit);
+    }
+}
+
+/// A [`LinearCall`] on the integer kernel.
+struct IntegerKernel<'k, 'a, W, E>(LinearCall<'k, 'a, W, E>);
+
+impl<W: WeightRows, E: FnMut(usize, usize, &[f32])> Kernel<()> for IntegerKernel<'_, '_, W, E> {
+    #[inline(always)]
+    fn run<F: Fma>(self, fma: F) {
+        let c = self.0;
+        linear_int8(fma, c.w, c.input, c.rows, c.emit);
     }
 }
 
@@ -214,9 +270,32 @@ pub fn linear_with<F: Fma, W: WeightRows>(
     w: &W,
     input: &Input<'_>,
     rows: core::ops::Range<usize>,
+    emit: impl FnMut(usize, usize, &[f32]),
+) {
+    let call = LinearCall {
+        w,
+        input,
+        rows,
+        emit,
+    };
+    if call.is_integer() {
+        IntegerKernel(call).run(fma);
+    } else {
+        FloatKernel(call).run(fma);
+    }
+}
+
+/// The f32 kernel of [`linear`].
+#[inline(always)]
+fn linear_f32<F: Fma, W: WeightRows>(
+    fma: F,
+    w: &W,
+    input: &Input<'_>,
+    rows: core::ops::Range<usize>,
     mut emit: impl FnMut(usize, usize, &[f32]),
 ) {
     debug_assert_eq!(w.cols(), input.channels());
+    let small_set = input.set < SMALL_SET;
     let k = w.cols().min(MAX_INPUT);
     let panel_len = panel_rows(k);
     let mut panel = [[0.0f32; ROW_BLOCK]; PANEL_FLOATS / ROW_BLOCK];
@@ -224,7 +303,6 @@ pub fn linear_with<F: Fma, W: WeightRows>(
     let mut scale = [0.0f32; PANEL_MAX_ROWS];
     let mut bias = [0.0f32; PANEL_MAX_ROWS];
     let n = input.n;
-    let small_set = input.set < SMALL_SET;
     let mut p0 = rows.start;
     while p0 < rows.end {
         let count = panel_len.min(rows.end - p0);
@@ -414,6 +492,9 @@ mod tests {
         }
         fn bias(&self, row: usize) -> f32 {
             self.bias[row]
+        }
+        fn int8_row(&self, _row: usize) -> Option<&[u8]> {
+            None
         }
     }
 

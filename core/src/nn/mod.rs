@@ -1,4 +1,5 @@
-//! Reusable kernels of the network: per-point linear layers, instance norm, activations, the
+//! Reusable kernels of the network: per-point linear layers (f32, and integer for int8
+//! weights), instance norm, activations, the
 //! residual block of a point ResNet, a deterministic exponential and fused multiply-add.
 //!
 //! Every feature matrix is channel-major: channel `c` of point `i` of a set of `n` points is
@@ -9,6 +10,7 @@
 pub mod dispatch;
 pub mod exp;
 pub mod fma;
+pub mod integer;
 pub mod linear;
 pub mod norm;
 pub mod residual;

@@ -1,0 +1,597 @@
+//! Integer kernel of the per-point linear layer for int8 weights, in the style of CMSIS-NN's
+//! `arm_nn_mat_mult_kernel_s16`: int8 weights times int16 activations, summed exactly in
+//! 32-bit integers, then scaled in f32.
+//!
+//! Each point's input is quantized per group `g` of [`GROUP`] channels (of one part of a
+//! concatenated input): `q = round(x * 32767 / max_g|x|)`, with the scale
+//! `s_g[i] = max_g|x| / 32767` per point and group. Output `r` at point `i` is
+//! `(sum_g (sum_{k in g} W[r][k] q[k][i]) * s_g[i]) * row_scale[r] + bias[r]`, the groups
+//! added in f32 in order. Products pair up along `k` (`w[k] q[k] + w[k+1] q[k+1]`: x86's
+//! `vpmaddwd`, Cortex-M's `SMLAD`), and each sum is exact: `|w| <= 128`, `|q| <= 32767` and
+//! at most [`MAX_INPUT`] = 512 products stay below 2^31. Integer sums do not depend on their
+//! order, so every block shape, vector width and instruction set gives the same bits.
+
+use super::dispatch::Fma;
+use super::linear::{Input, WeightRows, MAX_INPUT};
+
+/// Points quantized together: one tile of the input, reused by every output row.
+pub const TILE: usize = 16;
+/// Output rows of one register block (x86-64 and AArch64: 4 rows x 16 points fill 8 AVX2 or
+/// 16 NEON accumulators).
+#[cfg(not(target_arch = "arm"))]
+const ROWS: usize = 4;
+/// Points of one register block.
+#[cfg(not(target_arch = "arm"))]
+const POINTS: usize = 16;
+/// Output rows of one register block (Cortex-M: 2 rows x 2 points keep the four
+/// accumulators, two weight pairs and two activation pairs in the 13 core registers).
+#[cfg(target_arch = "arm")]
+const ROWS: usize = 2;
+/// Points of one register block.
+#[cfg(target_arch = "arm")]
+const POINTS: usize = 2;
+/// Largest quantized activation magnitude.
+const Q_MAX: f32 = 32767.0;
+/// Weight pairs one panel holds (8 KiB).
+const PANEL_PAIRS: usize = 2048;
+/// Most rows of a panel.
+const PANEL_MAX_ROWS: usize = 64;
+/// `1.5 * 2^23`: adding and subtracting it rounds to the nearest integer (ties to even).
+const ROUNDER: f32 = 12_582_912.0;
+
+/// Two consecutive channels (input `k` and `k + 1`) of one weight row or one point.
+pub type Pair = [i16; 2];
+/// One channel pair of a register block's weight rows.
+pub type WeightPairs = [Pair; ROWS];
+/// One channel pair of a tile's points.
+pub type TilePairs = [Pair; TILE];
+/// The sums of one register block.
+pub type BlockSums = [[i32; POINTS]; ROWS];
+
+/// [`super::linear::linear`] for int8 weights on a set of at least
+/// [`super::linear::SMALL_SET`] points (the caller checked that `w.int8_row` answers).
+///
+/// Rows are unpacked a panel at a time (each weight once per call). For each tile of
+/// [`TILE`] points, the input is quantized one group of [`GROUP`] channels at a time (each
+/// group has its own point scales; a part of a concatenated input starts a fresh pair and
+/// group), every row block of the panel passes over the group, and the group's exact sum,
+/// times its point scales, is added to the outputs in f32, group after group.
+#[inline(always)]
+pub fn linear_int8<F: Fma, W: WeightRows>(
+    fma: F,
+    w: &W,
+    input: &Input<'_>,
+    rows: core::ops::Range<usize>,
+    mut emit: impl FnMut(usize, usize, &[f32]),
+) {
+    let layout = PairLayout::of(input);
+    let pairs = layout.pairs();
+    let panel_len = (PANEL_PAIRS / pairs.max(1) / ROWS * ROWS).clamp(ROWS, PANEL_MAX_ROWS);
+    let mut panel = [[[0i16; 2]; ROWS]; PANEL_PAIRS / ROWS];
+    let mut row_scale = [0.0f32; PANEL_MAX_ROWS];
+    let mut bias = [0.0f32; PANEL_MAX_ROWS];
+    let mut tile = [[[0i16; 2]; TILE]; GROUP / 2];
+    let mut y = [[0.0f32; TILE]; PANEL_MAX_ROWS];
+    let n = input.points();
+    let mut p0 = rows.start;
+    while p0 < rows.end {
+        let count = panel_len.min(rows.end - p0);
+        let panel_rows = PanelRows { p0, count, pairs };
+        panel_rows.unpack(w, &layout, &mut panel, &mut row_scale, &mut bias);
+        let mut i0 = 0;
+        while i0 < n {
+            let len = TILE.min(n - i0);
+            y[..count].fill([0.0; TILE]);
+            for group in layout.groups() {
+                let point_scale = quantize_group(input, &group, i0, len, &mut tile);
+                let x = &tile[..group.pairs.len()];
+                let mut r = 0;
+                while r < count {
+                    let block = &panel[r / ROWS * pairs..(r / ROWS + 1) * pairs];
+                    let sums = tile_sums(fma, &block[group.pairs.clone()], x);
+                    for (yb, row_sums) in y[r..count].iter_mut().zip(&sums) {
+                        for ((yt, &sum), &point) in yb.iter_mut().zip(row_sums).zip(&point_scale) {
+                            *yt += sum as f32 * point;
+                        }
+                    }
+                    r += ROWS;
+                }
+            }
+            for (r, yr) in y[..count].iter().enumerate() {
+                let (scale, offset) = (row_scale[r], bias[r]);
+                let values: [f32; TILE] = core::array::from_fn(|t| yr[t] * scale + offset);
+                emit(p0 + r, i0, &values[..len]);
+            }
+            i0 += len;
+        }
+        p0 += count;
+    }
+}
+
+/// Channels that share one point scale. 15 bits of a point's largest value over a whole
+/// layer input were too coarse (instance norms amplify the rounding): int8 match agreement
+/// 0.936 on the 300 x 500 reference fixture, 0.952 with groups of 32 (docs/evaluation.md,
+/// "Conformance").
+const GROUP: usize = 32;
+
+/// Where each input part's channel pairs lie: part `p` holds pairs
+/// `start[p]..start[p + 1]` (its channels rounded up to even).
+struct PairLayout {
+    channels: [usize; 3],
+    start: [usize; 4],
+}
+
+impl PairLayout {
+    #[inline(always)]
+    fn of(input: &Input<'_>) -> Self {
+        let mut channels = input.part_channels();
+        let mut start = [0; 4];
+        let mut total = 0;
+        for (p, c) in channels.iter_mut().enumerate() {
+            *c = (*c).min(MAX_INPUT - total);
+            total += *c;
+            start[p + 1] = start[p] + c.div_ceil(2);
+        }
+        PairLayout { channels, start }
+    }
+
+    /// The groups, in order.
+    #[inline(always)]
+    fn groups(&self) -> impl Iterator<Item = Group> + '_ {
+        (0..3).flat_map(move |part| {
+            let (channels, start) = (self.channels[part], self.start[part]);
+            (0..channels).step_by(GROUP).map(move |first| {
+                let last = (first + GROUP).min(channels);
+                Group {
+                    part,
+                    channels: first..last,
+                    pairs: start + first / 2..start + last.div_ceil(2),
+                }
+            })
+        })
+    }
+
+    /// All pairs.
+    #[inline(always)]
+    fn pairs(&self) -> usize {
+        self.start[3]
+    }
+
+    /// The pair ranges of the parts.
+    #[inline(always)]
+    fn ranges(&self) -> impl Iterator<Item = core::ops::Range<usize>> + '_ {
+        (0..3).map(|p| self.start[p]..self.start[p + 1])
+    }
+}
+
+/// Up to [`GROUP`] channels of one input part that share point scales, and their pairs.
+struct Group {
+    part: usize,
+    channels: core::ops::Range<usize>,
+    pairs: core::ops::Range<usize>,
+}
+
+/// Rows `p0..p0 + count` of a panel of `pairs` pairs per row.
+struct PanelRows {
+    p0: usize,
+    count: usize,
+    pairs: usize,
+}
+
+impl PanelRows {
+    /// Unpacks the rows into `panel`, interleaved by row block (`[pair][ROWS]`; zero past
+    /// `count` and in each odd part's pad), with their scales and biases.
+    #[inline(always)]
+    fn unpack<W: WeightRows>(
+        &self,
+        w: &W,
+        layout: &PairLayout,
+        panel: &mut [WeightPairs],
+        row_scale: &mut [f32],
+        bias: &mut [f32],
+    ) {
+        let pairs = self.pairs;
+        for r in 0..self.count.next_multiple_of(ROWS) {
+            let lanes = &mut panel[r / ROWS * pairs..(r / ROWS + 1) * pairs];
+            let lane = r % ROWS;
+            let mut bytes = if r < self.count {
+                row_scale[r] = w.scale(self.p0 + r);
+                bias[r] = w.bias(self.p0 + r);
+                w.int8_row(self.p0 + r).unwrap_or(&[])
+            } else {
+                &[]
+            };
+            for (range, &channels) in layout.ranges().zip(&layout.channels) {
+                let (part, rest) = bytes.split_at(channels.min(bytes.len()));
+                bytes = rest;
+                let mut chunks = part.chunks(2);
+                for slot in &mut lanes[range] {
+                    slot[lane] = match chunks.next() {
+                        Some(&[a, b]) => [i16::from(a as i8), i16::from(b as i8)],
+                        Some(&[a]) => [i16::from(a as i8), 0],
+                        _ => [0, 0],
+                    };
+                }
+            }
+        }
+    }
+}
+
+/// Quantizes points `i0..i0 + len` of `group`'s channels into `tile` (`[pair][point]`, zero
+/// in the pad of an odd last channel) and returns the group's point scales (`max|x| / 32767`
+/// over its channels, 0 for an all-zero point). A part too short reads as zeros, as in the
+/// f32 kernel.
+#[inline(always)]
+fn quantize_group(
+    input: &Input<'_>,
+    group: &Group,
+    i0: usize,
+    len: usize,
+    tile: &mut [TilePairs],
+) -> [f32; TILE] {
+    let values = |c: usize| padded(input.channel(group.part, c, i0, len));
+    let mut max_abs = [0.0f32; TILE];
+    for c in group.channels.clone() {
+        for (m, v) in max_abs.iter_mut().zip(values(c)) {
+            let v = v.abs();
+            *m = if v > *m { v } else { *m };
+        }
+    }
+    let inverse = max_abs.map(|m| if m > 0.0 { Q_MAX / m } else { 0.0 });
+    for (slot, c) in tile.iter_mut().zip(group.channels.clone().step_by(2)) {
+        let even = quantized(values(c), &inverse);
+        let odd = if c + 1 < group.channels.end {
+            quantized(values(c + 1), &inverse)
+        } else {
+            [0; TILE]
+        };
+        *slot = interleave(even, odd);
+    }
+    max_abs.map(|m| m / Q_MAX)
+}
+
+/// One channel's tile values times each point's inverse scale, quantized.
+#[inline(always)]
+fn quantized(x: [f32; TILE], inverse: &[f32; TILE]) -> [i16; TILE] {
+    core::array::from_fn(|t| quantize(x[t] * inverse[t]))
+}
+
+/// A channel's values at one tile's points, zero past the end.
+#[inline(always)]
+fn padded(values: &[f32]) -> [f32; TILE] {
+    match values.first_chunk::<TILE>() {
+        Some(x) => *x,
+        None => {
+            let mut x = [0.0; TILE];
+            for (xt, &v) in x.iter_mut().zip(values) {
+                *xt = v;
+            }
+            x
+        }
+    }
+}
+
+/// Channels `2p` and `2p + 1` of a tile's points as pairs.
+#[inline(always)]
+fn interleave(even: [i16; TILE], odd: [i16; TILE]) -> TilePairs {
+    core::array::from_fn(|t| [even[t], odd[t]])
+}
+
+/// `v` clamped to `±Q_MAX` (NaN to `-Q_MAX`) and rounded to the nearest integer (ties to
+/// even): after adding [`ROUNDER`] the integer sits in the low mantissa bits, so integer
+/// arithmetic on the bit patterns reads it off (no float-to-int conversion, which
+/// vectorises poorly).
+#[inline(always)]
+fn quantize(v: f32) -> i16 {
+    let v = if v >= -Q_MAX { v } else { -Q_MAX };
+    let v = if v <= Q_MAX { v } else { Q_MAX };
+    ((v + ROUNDER).to_bits() as i32 - ROUNDER.to_bits() as i32) as i16
+}
+
+/// The exact sums of one row block over a tile: `ROWS x TILE`, in register blocks of
+/// `ROWS x POINTS`.
+#[inline(always)]
+fn tile_sums<F: Fma>(fma: F, w: &[WeightPairs], x: &[TilePairs]) -> [[i32; TILE]; ROWS] {
+    let mut sums = [[0i32; TILE]; ROWS];
+    for p in (0..TILE).step_by(POINTS) {
+        let block = fma.pair_sums(w, x, p);
+        for (row, part) in sums.iter_mut().zip(&block) {
+            row[p..p + POINTS].copy_from_slice(part);
+        }
+    }
+    sums
+}
+
+/// `ROWS x POINTS` sums starting at point `p` of the tile; the accumulators stay in registers.
+#[inline(always)]
+pub fn block_sums(w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
+    let mut acc = [[0i32; POINTS]; ROWS];
+    for (wk, xk) in w.iter().zip(x) {
+        let Some(points) = xk.get(p..).and_then(|s| s.first_chunk::<POINTS>()) else {
+            continue;
+        };
+        for (a, &wr) in acc.iter_mut().zip(wk) {
+            for (at, &xt) in a.iter_mut().zip(points) {
+                *at = multiply_accumulate(*at, wr, xt);
+            }
+        }
+    }
+    acc
+}
+
+/// [`block_sums`] with AVX2's `vpmaddwd` (`_mm256_madd_epi16`: eight pair products summed
+/// into 32-bit lanes per instruction); on x86-64 a block is a whole tile (`p` is 0).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+#[allow(unsafe_code)]
+pub fn block_sums_avx2(
+    _avx2: super::dispatch::X86Fma,
+    w: &[WeightPairs],
+    x: &[TilePairs],
+    p: usize,
+) -> BlockSums {
+    use core::arch::x86_64::{
+        __m256i, _mm256_add_epi32, _mm256_loadu_si256, _mm256_madd_epi16, _mm256_set1_epi32,
+        _mm256_setzero_si256, _mm256_storeu_si256,
+    };
+    const HALF: usize = POINTS / 2;
+    debug_assert_eq!((p, POINTS, TILE), (0, 16, 16));
+    let mut sums = [[0i32; POINTS]; ROWS];
+    // SAFETY: an `X86Fma` exists only on a CPU with AVX2 (see `dispatch`). Each load reads
+    // 8 pairs (32 bytes) of a `[Pair; 16]` (64 bytes) at pair 0 or 8, and each store writes
+    // 8 `i32` (32 bytes) into a `[i32; 16]` at 0 or 8: all in bounds; `loadu`/`storeu`
+    // need no alignment.
+    unsafe {
+        let mut acc = [[_mm256_setzero_si256(); 2]; ROWS];
+        for (wk, xk) in w.iter().zip(x) {
+            let points: [__m256i; 2] =
+                [0, HALF].map(|at| _mm256_loadu_si256(xk.as_ptr().add(at).cast()));
+            for (a, wr) in acc.iter_mut().zip(wk) {
+                let weights = _mm256_set1_epi32(pair_bits(*wr));
+                for (lane, &xs) in a.iter_mut().zip(&points) {
+                    *lane = _mm256_add_epi32(*lane, _mm256_madd_epi16(weights, xs));
+                }
+            }
+        }
+        for (row, a) in sums.iter_mut().zip(&acc) {
+            for (at, lane) in [0, HALF].into_iter().zip(a) {
+                _mm256_storeu_si256(row.as_mut_ptr().add(at).cast(), *lane);
+            }
+        }
+    }
+    sums
+}
+
+/// A pair as one 32-bit word: channel `k` in the low half, as `vpmaddwd` and `smlad` read it.
+#[inline(always)]
+fn pair_bits(pair: Pair) -> i32 {
+    (u32::from(pair[0] as u16) | u32::from(pair[1] as u16) << 16) as i32
+}
+
+/// `acc + w[0] x[0] + w[1] x[1]` (no overflow: each product is below 2^22, and the sums of
+/// a layer below 2^31).
+#[cfg(not(all(feature = "arm-dsp", target_arch = "arm")))]
+#[inline(always)]
+fn multiply_accumulate(acc: i32, w: Pair, x: Pair) -> i32 {
+    acc.wrapping_add(i32::from(w[0]) * i32::from(x[0]) + i32::from(w[1]) * i32::from(x[1]))
+}
+
+/// `acc + w[0] x[0] + w[1] x[1]` in one ARMv7E-M `smlad` (the core's `arm-dsp` feature;
+/// stable Rust cannot test `target_feature = "dsp"`).
+#[cfg(all(feature = "arm-dsp", target_arch = "arm"))]
+#[inline(always)]
+#[allow(unsafe_code)]
+fn multiply_accumulate(acc: i32, w: Pair, x: Pair) -> i32 {
+    let sum: i32;
+    // SAFETY: `smlad` only reads and writes the four core registers given (it may set the
+    // sticky Q flag, which nothing here reads); the `arm-dsp` feature declares an ARMv7E-M
+    // target, which has the instruction.
+    unsafe {
+        core::arch::asm!(
+            "smlad {sum}, {w}, {x}, {acc}",
+            sum = lateout(reg) sum,
+            w = in(reg) pair_bits(w),
+            x = in(reg) pair_bits(x),
+            acc = in(reg) acc,
+            options(pure, nomem, nostack)
+        );
+    }
+    sum
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::dispatch::Portable;
+    use super::super::linear::{linear, linear_with, store, SMALL_SET};
+    use super::*;
+    use crate::weights::{tests_support, Precision};
+
+    /// A layer of `ROWS_ x COLS` int8 weights from `sin`, scales and biases from `cos`.
+    struct Layer {
+        weights: [u8; 9 * 37],
+        scales: [u8; 9 * 4],
+        bias: [u8; 9 * 4],
+    }
+
+    const ROWS_: usize = 9;
+    const COLS: usize = 37;
+
+    fn layer() -> Layer {
+        let mut scales = [0u8; 9 * 4];
+        let mut bias = [0u8; 9 * 4];
+        for r in 0..ROWS_ {
+            scales[r * 4..r * 4 + 4].copy_from_slice(&(0.01 + 0.002 * r as f32).to_le_bytes());
+            bias[r * 4..r * 4 + 4].copy_from_slice(&libm::cosf(r as f32).to_le_bytes());
+        }
+        let weights = core::array::from_fn(|i| (libm::sinf(i as f32 * 0.61) * 127.0) as i8 as u8);
+        Layer {
+            weights,
+            scales,
+            bias,
+        }
+    }
+
+    /// The definition in the module doc, written out point by point with `i64` sums.
+    fn expected(layer: &Layer, x: &[f32], n: usize, r: usize, i: usize) -> f32 {
+        let mut y = 0.0f32;
+        for first in (0..COLS).step_by(GROUP) {
+            let group = first..(first + GROUP).min(COLS);
+            let max_abs = group.clone().fold(0.0f32, |m, k| m.max(x[k * n + i].abs()));
+            let inv = if max_abs > 0.0 { Q_MAX / max_abs } else { 0.0 };
+            let sum: i64 = group
+                .map(|k| {
+                    let w = i64::from(layer.weights[r * COLS + k] as i8);
+                    let q = libm::rintf(x[k * n + i] * inv).clamp(-Q_MAX, Q_MAX) as i64;
+                    w * q
+                })
+                .sum();
+            y += sum as f32 * (max_abs / Q_MAX);
+        }
+        let scale = f32::from_le_bytes(layer.scales[r * 4..r * 4 + 4].try_into().unwrap());
+        let bias = f32::from_le_bytes(layer.bias[r * 4..r * 4 + 4].try_into().unwrap());
+        y * scale + bias
+    }
+
+    /// 9 rows (a partial row block) x 37 inputs (an odd count) on 45 points (a partial tile),
+    /// one point all zero: the dispatched kernel, the portable one and the definition agree bit
+    /// for bit, and the result is within the activations' rounding of the f32 product.
+    #[test]
+    fn integer_kernel_follows_its_definition_on_every_path() {
+        const N: usize = 45;
+        let layer = layer();
+        let linear_layer = tests_support::linear(
+            ROWS_,
+            COLS,
+            Precision::Int8,
+            &layer.weights,
+            &layer.scales,
+            &layer.bias,
+        );
+        let mut x: [f32; COLS * N] = core::array::from_fn(|i| libm::cosf(i as f32 * 1.3) * 2.0);
+        for k in 0..COLS {
+            x[k * N + 7] = 0.0;
+        }
+        let input = Input::one(&x, COLS, N);
+        let mut dispatched = [0.0f32; ROWS_ * N];
+        linear(&linear_layer, &input, 0..ROWS_, |r, i0, v| {
+            store(&mut dispatched, N, r, i0, v)
+        });
+        let mut portable = [0.0f32; ROWS_ * N];
+        linear_with(Portable, &linear_layer, &input, 0..ROWS_, |r, i0, v| {
+            store(&mut portable, N, r, i0, v)
+        });
+        assert_eq!(dispatched.map(f32::to_bits), portable.map(f32::to_bits));
+        for r in 0..ROWS_ {
+            let scale = f32::from_le_bytes(layer.scales[r * 4..r * 4 + 4].try_into().unwrap());
+            for i in 0..N {
+                let got = dispatched[r * N + i];
+                assert_eq!(got.to_bits(), expected(&layer, &x, N, r, i).to_bits());
+                let float: f32 = (0..COLS)
+                    .map(|k| f32::from(layer.weights[r * COLS + k] as i8) * x[k * N + i])
+                    .sum::<f32>()
+                    * scale
+                    + f32::from_le_bytes(layer.bias[r * 4..r * 4 + 4].try_into().unwrap());
+                assert!(
+                    (got - float).abs() < 1e-3,
+                    "row {r} point {i}: {got} vs {float}"
+                );
+            }
+        }
+        assert!(N >= SMALL_SET);
+    }
+
+    /// A concatenated input of three parts on their own scales (one of odd width), a window
+    /// of its points, a row sub-range and a column slice of the layer: every output is
+    /// within the activations' rounding of the f32 kernel's.
+    #[test]
+    fn parts_windows_and_slices_stay_close_to_the_f32_kernel() {
+        const N: usize = 40;
+        let layer = layer();
+        let linear_layer = tests_support::linear(
+            ROWS_,
+            COLS,
+            Precision::Int8,
+            &layer.weights,
+            &layer.scales,
+            &layer.bias,
+        );
+        let (a_rows, b_rows, c_rows) = (10, 13, 14);
+        let a: [f32; 10 * N] = core::array::from_fn(|i| libm::sinf(i as f32) * 100.0);
+        let b: [f32; 13 * N] = core::array::from_fn(|i| libm::cosf(i as f32 * 0.3) * 0.01);
+        let c: [f32; 14 * N] = core::array::from_fn(|i| libm::sinf(i as f32 * 2.1));
+        let input =
+            Input::parts([&a, &b, &c], [a_rows, b_rows, c_rows], N).columns(5, SMALL_SET + 3);
+        let slice = super::super::linear::ColumnSlice {
+            layer: &linear_layer,
+            start: a_rows,
+            cols: b_rows + c_rows,
+        };
+        let tail = Input::two((&b, b_rows), (&c, c_rows), N);
+        let float = |row: usize, point: usize, first: usize, parts: &[(&[f32], usize)]| {
+            let mut k = first;
+            let mut sum = 0.0f64;
+            for (x, rows) in parts {
+                for ch in 0..*rows {
+                    let w = f64::from(layer.weights[row * COLS + k] as i8);
+                    sum += w * f64::from(x[ch * N + point]);
+                    k += 1;
+                }
+            }
+            let scale = f32::from_le_bytes(layer.scales[row * 4..row * 4 + 4].try_into().unwrap());
+            sum * f64::from(scale)
+        };
+        let bias = |row: usize| {
+            f64::from(f32::from_le_bytes(
+                layer.bias[row * 4..row * 4 + 4].try_into().unwrap(),
+            ))
+        };
+        let mut checked = 0;
+        linear(&linear_layer, &input, 3..ROWS_, |r, i0, v| {
+            for (t, &got) in v.iter().enumerate() {
+                let want = float(
+                    r,
+                    5 + i0 + t,
+                    0,
+                    &[(&a, a_rows), (&b, b_rows), (&c, c_rows)],
+                ) + bias(r);
+                // Each part's rounding: half a step of its largest value per channel.
+                assert!(
+                    (f64::from(got) - want).abs() < 0.05,
+                    "row {r}: {got} vs {want}"
+                );
+                checked += 1;
+            }
+        });
+        linear(&slice, &tail, 0..ROWS_, |r, i0, v| {
+            for (t, &got) in v.iter().enumerate() {
+                let want = float(r, i0 + t, a_rows, &[(&b, b_rows), (&c, c_rows)]);
+                assert!(
+                    (f64::from(got) - want).abs() < 1e-3,
+                    "slice row {r}: {got} vs {want}"
+                );
+                checked += 1;
+            }
+        });
+        assert_eq!(checked, (ROWS_ - 3) * (SMALL_SET + 3) + ROWS_ * N);
+    }
+
+    /// The largest magnitudes (weights -128, activations at full scale, 512 inputs) sum
+    /// without overflow.
+    #[test]
+    fn the_widest_layer_at_full_scale_does_not_overflow() {
+        let weights = [0x80u8; MAX_INPUT];
+        let scales = 1.0f32.to_le_bytes();
+        let linear_layer =
+            tests_support::linear(1, MAX_INPUT, Precision::Int8, &weights, &scales, &[]);
+        let x = [-3.0f32; MAX_INPUT * SMALL_SET];
+        let mut out = [0.0f32; SMALL_SET];
+        linear(
+            &linear_layer,
+            &Input::one(&x, MAX_INPUT, SMALL_SET),
+            0..1,
+            |_, i0, v| out[i0..i0 + v.len()].copy_from_slice(v),
+        );
+        let exact = 128.0 * 3.0 * MAX_INPUT as f32;
+        assert!(out.iter().all(|&y| (y - exact).abs() < 0.1), "{out:?}");
+    }
+}
