@@ -32,8 +32,8 @@ const ROWS: usize = 2;
 const POINTS: usize = 2;
 /// Largest quantized activation magnitude.
 const Q_MAX: f32 = 32767.0;
-/// Weight pairs one panel holds (8 KiB).
-const PANEL_PAIRS: usize = 2048;
+/// Weight pairs one panel holds (16 KiB).
+const PANEL_PAIRS: usize = 4096;
 /// Most rows of a panel.
 const PANEL_MAX_ROWS: usize = 64;
 /// `1.5 * 2^23`: adding and subtracting it rounds to the nearest integer (ties to even).
@@ -112,7 +112,7 @@ pub fn linear_int8<F: Fma, W: WeightRows>(
 /// layer input were too coarse (instance norms amplify the rounding): int8 match agreement
 /// 0.936 on the 300 x 500 reference fixture, 0.952 with groups of 32 (docs/evaluation.md,
 /// "Conformance").
-const GROUP: usize = 32;
+pub const GROUP: usize = 32;
 
 /// Where each input part's channel pairs lie: part `p` holds pairs
 /// `start[p]..start[p + 1]` (its channels rounded up to even).
@@ -363,6 +363,7 @@ pub fn block_sums_avx2(
 }
 
 /// A pair as one 32-bit word: channel `k` in the low half, as `vpmaddwd` and `smlad` read it.
+#[cfg(any(target_arch = "x86_64", all(feature = "arm-dsp", target_arch = "arm")))]
 #[inline(always)]
 fn pair_bits(pair: Pair) -> i32 {
     (u32::from(pair[0] as u16) | u32::from(pair[1] as u16) << 16) as i32
@@ -497,7 +498,7 @@ mod tests {
                 );
             }
         }
-        assert!(N >= SMALL_SET);
+        const { assert!(N >= SMALL_SET) };
     }
 
     /// A concatenated input of three parts on their own scales (one of odd width), a window
