@@ -417,6 +417,30 @@ mod tests {
     const ROWS_: usize = 9;
     const COLS: usize = 37;
 
+    impl Layer {
+        /// The layer as the kernel reads it.
+        fn linear(&self) -> crate::weights::Linear<'_> {
+            tests_support::linear(
+                ROWS_,
+                COLS,
+                Precision::Int8,
+                &self.weights,
+                &self.scales,
+                &self.bias,
+            )
+        }
+
+        /// Row `r`'s scale.
+        fn scale(&self, r: usize) -> f32 {
+            f32::from_le_bytes(self.scales[r * 4..r * 4 + 4].try_into().unwrap())
+        }
+
+        /// Row `r`'s bias.
+        fn bias(&self, r: usize) -> f32 {
+            f32::from_le_bytes(self.bias[r * 4..r * 4 + 4].try_into().unwrap())
+        }
+    }
+
     fn layer() -> Layer {
         let mut scales = [0u8; 9 * 4];
         let mut bias = [0u8; 9 * 4];
@@ -448,9 +472,7 @@ mod tests {
                 .sum();
             y += sum as f32 * (max_abs / Q_MAX);
         }
-        let scale = f32::from_le_bytes(layer.scales[r * 4..r * 4 + 4].try_into().unwrap());
-        let bias = f32::from_le_bytes(layer.bias[r * 4..r * 4 + 4].try_into().unwrap());
-        y * scale + bias
+        y * layer.scale(r) + layer.bias(r)
     }
 
     /// 9 rows (a partial row block) x 37 inputs (an odd count) on 45 points (a partial tile),
@@ -460,14 +482,7 @@ mod tests {
     fn integer_kernel_follows_its_definition_on_every_path() {
         const N: usize = 45;
         let layer = layer();
-        let linear_layer = tests_support::linear(
-            ROWS_,
-            COLS,
-            Precision::Int8,
-            &layer.weights,
-            &layer.scales,
-            &layer.bias,
-        );
+        let linear_layer = layer.linear();
         let mut x: [f32; COLS * N] = core::array::from_fn(|i| libm::cosf(i as f32 * 1.3) * 2.0);
         for k in 0..COLS {
             x[k * N + 7] = 0.0;
@@ -483,7 +498,7 @@ mod tests {
         });
         assert_eq!(dispatched.map(f32::to_bits), portable.map(f32::to_bits));
         for r in 0..ROWS_ {
-            let scale = f32::from_le_bytes(layer.scales[r * 4..r * 4 + 4].try_into().unwrap());
+            let scale = layer.scale(r);
             for i in 0..N {
                 let got = dispatched[r * N + i];
                 assert_eq!(got.to_bits(), expected(&layer, &x, N, r, i).to_bits());
@@ -491,7 +506,7 @@ mod tests {
                     .map(|k| f32::from(layer.weights[r * COLS + k] as i8) * x[k * N + i])
                     .sum::<f32>()
                     * scale
-                    + f32::from_le_bytes(layer.bias[r * 4..r * 4 + 4].try_into().unwrap());
+                    + layer.bias(r);
                 assert!(
                     (got - float).abs() < 1e-3,
                     "row {r} point {i}: {got} vs {float}"
@@ -508,14 +523,7 @@ mod tests {
     fn parts_windows_and_slices_stay_close_to_the_f32_kernel() {
         const N: usize = 40;
         let layer = layer();
-        let linear_layer = tests_support::linear(
-            ROWS_,
-            COLS,
-            Precision::Int8,
-            &layer.weights,
-            &layer.scales,
-            &layer.bias,
-        );
+        let linear_layer = layer.linear();
         let (a_rows, b_rows, c_rows) = (10, 13, 14);
         let a: [f32; 10 * N] = core::array::from_fn(|i| libm::sinf(i as f32) * 100.0);
         let b: [f32; 13 * N] = core::array::from_fn(|i| libm::cosf(i as f32 * 0.3) * 0.01);
@@ -538,14 +546,9 @@ mod tests {
                     k += 1;
                 }
             }
-            let scale = f32::from_le_bytes(layer.scales[row * 4..row * 4 + 4].try_into().unwrap());
-            sum * f64::from(scale)
+            sum * f64::from(layer.scale(row))
         };
-        let bias = |row: usize| {
-            f64::from(f32::from_le_bytes(
-                layer.bias[row * 4..row * 4 + 4].try_into().unwrap(),
-            ))
-        };
+        let bias = |row: usize| f64::from(layer.bias(row));
         let mut checked = 0;
         linear(&linear_layer, &input, 3..ROWS_, |r, i0, v| {
             for (t, &got) in v.iter().enumerate() {
