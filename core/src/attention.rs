@@ -66,6 +66,20 @@ pub struct SelfScratch<'s> {
     pub maxima: &'s mut [f32],
     /// `d x FUSE_BLOCK` output block of the fusing conv.
     pub fused: &'s mut [f32],
+    /// Any free memory (the matcher's Sinkhorn cost, unused while attention runs): where it
+    /// is larger than `rows` or `fused`, it takes their place, so the linear layers run on
+    /// more rows or points per call (each call unpacks its weights and, on the integer
+    /// kernel, quantizes its input once).
+    pub spare: &'s mut [f32],
+}
+
+/// The larger of two scratch buffers.
+fn larger<'a>(a: &'a mut [f32], b: &'a mut [f32]) -> &'a mut [f32] {
+    if a.len() >= b.len() {
+        a
+    } else {
+        b
+    }
 }
 
 /// One EdgeConv self-attention layer (supp. eq. 4-5) on `x` (`d x n`), in place: the output
@@ -133,7 +147,7 @@ fn self_layer_with<F: Fma>(
         graph,
         k,
         s.x1,
-        s.rows,
+        larger(s.spare, s.rows),
         s.maxima,
     );
     edge_conv(
@@ -144,18 +158,20 @@ fn self_layer_with<F: Fma>(
         graph,
         k,
         s.x2,
-        s.rows,
+        larger(s.spare, s.rows),
         s.maxima,
     );
+    let fused = larger(s.spare, s.fused);
+    let block = (fused.len() / d.max(1)).clamp(1, n.max(1));
     let mut b0 = 0;
     while b0 < n {
-        let len = FUSE_BLOCK.min(n - b0);
+        let len = block.min(n - b0);
         let input = Input::parts([&*x, &*s.x1, &*s.x2], [d, d, 2 * d], n).columns(b0, len);
         linear(&w.fuse, &input, 0..d, |r, i0, v| {
-            store(s.fused, len, r, i0, v)
+            store(fused, len, r, i0, v)
         });
         for r in 0..d {
-            x[r * n + b0..r * n + b0 + len].copy_from_slice(&s.fused[r * len..(r + 1) * len]);
+            x[r * n + b0..r * n + b0 + len].copy_from_slice(&fused[r * len..(r + 1) * len]);
         }
         b0 += len;
     }
@@ -187,7 +203,7 @@ fn edge_conv<F: Fma>(
     linear(centre, input, 0..channels, |r, i0, v| {
         store(out, n, r, i0, v)
     });
-    let chunk = chunk_rows(centre.cols(), rows.len(), n);
+    let chunk = chunk_rows(rows.len(), n);
     let mut r0 = 0;
     while r0 < channels {
         let r1 = (r0 + chunk).min(channels);
@@ -704,5 +720,61 @@ mod tests {
             let expected = leaky_relu(normed[i * 2]).max(leaky_relu(normed[i * 2 + 1]));
             assert!((out[i] - expected).abs() < 1e-6, "{i}");
         }
+    }
+
+    /// A self layer gives the same bits whether its rows and point blocks go through the
+    /// smallest scratch it accepts (chunks of `ROW_BLOCK` rows, one point per fusing
+    /// block) or through a spare buffer that holds every row at once.
+    #[test]
+    fn self_layer_output_does_not_depend_on_the_scratch_size() {
+        extern crate std;
+        use crate::nn::ROW_BLOCK;
+        use crate::weights::{tests_support, Model};
+        let mut buf = std::vec![0u8; 64 * 1024];
+        let len = tests_support::blob(&tests_support::TINY, 5, &mut buf);
+        let model = Model::from_bytes(&buf[..len]).expect("valid blob");
+        let (d, n) = (usize::from(tests_support::TINY.feature_dim), 40);
+        let points: std::vec::Vec<[f32; 2]> = (0..n)
+            .map(|i| [(i as f32 * 0.37).sin(), (i as f32 * 0.73).cos()])
+            .collect();
+        let k = neighbour_count(usize::from(tests_support::TINY.knn), n);
+        let mut graph = std::vec![[0u16; MAX_KNN]; n];
+        knn_graph(&points, k, &mut graph);
+        let input: std::vec::Vec<f32> = (0..d * n).map(|i| (i as f32 * 0.11).sin()).collect();
+        let run = |spare: &mut [f32]| {
+            let (mut x, mut x1, mut x2) = (
+                input.clone(),
+                std::vec![0.0; d * n],
+                std::vec![0.0; 2 * d * n],
+            );
+            let (mut rows, mut maxima, mut fused) = (
+                std::vec![0.0; ROW_BLOCK * n],
+                std::vec![0.0; n],
+                std::vec![0.0; d],
+            );
+            let scratch = SelfScratch {
+                x1: &mut x1,
+                x2: &mut x2,
+                rows: &mut rows,
+                maxima: &mut maxima,
+                fused: &mut fused,
+                spare,
+            };
+            self_layer(&model.self_layers[0], &graph, k, &mut x, n, scratch);
+            x
+        };
+        let small = run(&mut []);
+        let large = run(&mut std::vec![0.0; 2 * d * n]);
+        assert!(small.iter().all(|v| v.is_finite()));
+        assert_eq!(
+            small
+                .iter()
+                .map(|v| v.to_bits())
+                .collect::<std::vec::Vec<_>>(),
+            large
+                .iter()
+                .map(|v| v.to_bits())
+                .collect::<std::vec::Vec<_>>()
+        );
     }
 }

@@ -147,7 +147,8 @@ pub struct Matcher<const N: usize, S: PlanScalar = f32> {
     rows: [[f32; N]; SCRATCH_ROWS],
     /// Output block of the self-attention fusing conv.
     fused: [f32; MAX_FEATURE_DIM * FUSE_BLOCK],
-    /// Sinkhorn cost, `N x N` (rows 3D, columns 2D).
+    /// Sinkhorn cost, `N x N` (rows 3D, columns 2D); before it is computed, the
+    /// self-attention layers' spare scratch ([`SelfScratch::spare`]).
     plan: [[S; N]; N],
     /// Sinkhorn potentials: `u` (`n3 + 1`) then `v` (`n2 + 1`); `3 N >= 2 N + 2` for
     /// `N >= 2`.
@@ -249,7 +250,14 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
         let k = neighbour_count(usize::from(model.config().knn), n);
         let graph = &mut self.graph2d[..n];
         knn_graph(query, k, graph);
-        let scratch = self_scratch(pool, rows, &mut self.fused, d, n);
+        let scratch = self_scratch(
+            pool,
+            rows,
+            &mut self.fused,
+            self.plan.as_flattened_mut(),
+            d,
+            n,
+        );
         self_layer(&model.self_layers[0], graph, k, x, n, scratch);
         observer.features(Stage::Att0Self2d, x, d, n);
         self.query_len = n;
@@ -303,7 +311,14 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
         let k2 = neighbour_count(usize::from(config.knn), n2);
         knn_graph(db, k3, &mut self.graph3d[..n3]);
         let graph3d = &self.graph3d[..n3];
-        let scratch = self_scratch(pool, rows, &mut self.fused, d, n3);
+        let scratch = self_scratch(
+            pool,
+            rows,
+            &mut self.fused,
+            self.plan.as_flattened_mut(),
+            d,
+            n3,
+        );
         self_layer(&model.self_layers[0], graph3d, k3, desc3d, n3, scratch);
         observer.features(Stage::Att0Self3d, desc3d, d, n3);
         desc2d.copy_from_slice(&query[..d * n2]);
@@ -319,7 +334,14 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
             (&mut *desc3d, n3, graph3d, k3),
         ];
         for (x, n, graph, k) in sets {
-            let scratch = self_scratch(pool, rows, &mut self.fused, d, n);
+            let scratch = self_scratch(
+                pool,
+                rows,
+                &mut self.fused,
+                self.plan.as_flattened_mut(),
+                d,
+                n,
+            );
             self_layer(&model.self_layers[1], graph, k, x, n, scratch);
         }
         observer.features(Stage::Att2Self2d, desc2d, d, n2);
@@ -401,11 +423,12 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
 }
 
 /// Splits the stage scratch for a self-attention layer on a set of `n` points of `d`
-/// channels.
-fn self_scratch<'s>(
+/// channels; the Sinkhorn cost `plan`, not yet in use, is its spare memory.
+fn self_scratch<'s, S: PlanScalar>(
     pool: &'s mut [f32],
     rows: &'s mut [f32],
     fused: &'s mut [f32],
+    plan: &'s mut [S],
     d: usize,
     n: usize,
 ) -> SelfScratch<'s> {
@@ -417,6 +440,7 @@ fn self_scratch<'s>(
         rows,
         maxima,
         fused,
+        spare: bytemuck::pod_align_to_mut::<S, f32>(plan).1,
     }
 }
 

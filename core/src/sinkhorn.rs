@@ -12,7 +12,7 @@ use crate::nn::linear::WeightRows;
 use crate::nn::{exp, linear, Input};
 
 /// Storage type of the cost matrix.
-pub trait PlanScalar: Copy + 'static {
+pub trait PlanScalar: bytemuck::Pod {
     /// Zero, for a `const` initialised workspace.
     const ZERO: Self;
     /// Rounds an f32 into storage.

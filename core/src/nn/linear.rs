@@ -180,15 +180,15 @@ const TILE_POINTS: usize = 64;
 
 /// Most output rows a panel holds for a layer of `cols` inputs (a multiple of
 /// [`ROW_BLOCK`]).
-pub fn panel_rows(cols: usize) -> usize {
+fn panel_rows(cols: usize) -> usize {
     (PANEL_FLOATS / cols.max(1) / ROW_BLOCK * ROW_BLOCK).clamp(ROW_BLOCK, PANEL_MAX_ROWS)
 }
 
 /// Output rows to compute per call when they must wait in a scratch of `scratch` values
-/// for `n` points: a whole panel if it fits, at least [`ROW_BLOCK`].
-pub fn chunk_rows(cols: usize, scratch: usize, n: usize) -> usize {
-    let fits = scratch / n.max(1) / ROW_BLOCK * ROW_BLOCK;
-    panel_rows(cols).min(fits).max(ROW_BLOCK)
+/// for `n` points: as many as fit (fewer calls, so fewer passes over the input), at least
+/// [`ROW_BLOCK`].
+pub fn chunk_rows(scratch: usize, n: usize) -> usize {
+    (scratch / n.max(1) / ROW_BLOCK * ROW_BLOCK).max(ROW_BLOCK)
 }
 
 /// Computes output rows `rows` of `w` applied to `input` and hands each finished block of

@@ -8,7 +8,8 @@ use crate::weights::ResidualBlockWeights;
 
 /// Applies one block in place to `x` (`d x n`, channel-major). `hidden` holds at least
 /// `d x (n + 1)` values and `rows` at least `ROW_BLOCK x n`; both are scratch (more of
-/// either, fewer passes).
+/// either, fewer passes: the last conv's rows wait for their instance norm in the larger
+/// of `rows` and what `hidden` holds beyond `d x n`).
 pub fn residual_block(
     w: &ResidualBlockWeights<'_>,
     x: &mut [f32],
@@ -23,7 +24,8 @@ pub fn residual_block(
         instance_norm(row);
     }
     let input = Input::one(inner, d, n);
-    let chunk = chunk_rows(d, rows.len(), n);
+    let rows = if tile.len() > rows.len() { tile } else { rows };
+    let chunk = chunk_rows(rows.len(), n);
     let mut r0 = 0;
     while r0 < d {
         let r1 = (r0 + chunk).min(d);

@@ -1,5 +1,5 @@
-"""tools/train/train_gpu.sh end to end, on the CPU (DEVICE=cpu) with one synthetic scene per seed and two short
-runs: a new model and a fine-tuned shipped one. Needs `gomatch-sim` (./test.sh builds it) and ../shared/data."""
+"""tools/train/train_gpu.sh end to end, on the CPU (DEVICE=cpu) with one synthetic scene per seed, four queries per
+real scene and two short runs: a new model and a fine-tuned shipped one. Needs `gomatch-sim` (./test.sh builds it) and ../shared/data."""
 
 import os
 import subprocess
@@ -18,8 +18,10 @@ def test_gpu_session_script_writes_data_trains_every_run_and_collects_the_export
     data = require(SHARED / "data")
     if not GOMATCH_SIM.exists():
         pytest.skip(f"{GOMATCH_SIM} not built (cargo build --release -p gomatch-sim); skipping")
-    env = dict(os.environ, DEVICE="cpu", SYNTHETIC_SCENES="1", PYTHON=sys.executable)
-    runs = ["tiny::16:1:1", "shipped:models/gomatch.safetensors:128:12:4:--lr,1e-4,--outlier-rate,0.5,0.9"]
+    env = dict(os.environ, DEVICE="cpu", SYNTHETIC_SCENES="1", REAL_QUERIES="4", PYTHON=sys.executable)
+    # At most 128 points per set: one batch of 32 samples of the full model at 1024 takes minutes on a CPU.
+    small = "--max-points,128"
+    runs = ["tiny::16:1:1:" + small, "shipped:models/gomatch.safetensors:128:12:4:--lr,1e-4,--outlier-rate,0.5,0.9," + small]
     script = REPO_ROOT / "tools" / "train" / "train_gpu.sh"
     done = subprocess.run(
         ["bash", str(script), str(GOMATCH_SIM), str(data), str(tmp_path), "0.02", *runs],
