@@ -4,8 +4,13 @@
 //! localization of a `colmap/mouse` query at N = 1024 with the shipped int8 model and an
 //! f16 cost (the device configuration). Preparation (conversion, map build) is outside
 //! the functions callgrind is told to count.
+//!
+//! `time N PRECISION RUNS` times the same match (`tools/bench_reference.sh` runs it beside
+//! the reference): two warm-up runs, then RUNS timed ones on this thread, and prints
+//! `RESULT {"n", "precision", "runs", "median_ms", "min_ms", "max_ms", "matches"}`.
 
 use std::sync::Mutex;
+use std::time::Instant;
 
 use gomatch::{Localizer, Matcher, Model, Precision};
 use gomatch_tools::convert::{convert_with, Options};
@@ -20,38 +25,87 @@ static MATCHER_F32: Mutex<Matcher<CAPACITY, f32>> = Mutex::new(Matcher::new());
 static MATCHER_F16: Mutex<Matcher<CAPACITY, f16>> = Mutex::new(Matcher::new());
 static LOCALIZER: Mutex<Localizer<CAPACITY, f16>> = Mutex::new(Localizer::new());
 
+/// Warm-up runs before the timed ones.
+const WARMUP: usize = 2;
+
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     match args.iter().map(String::as_str).collect::<Vec<_>>()[..] {
-        ["match", n, precision] => match_once(n.parse()?, precision),
+        ["match", n, precision] => match_once(n.parse()?, parse_precision(precision)?),
+        ["time", n, precision, runs] => {
+            time_matches(n.parse()?, parse_precision(precision)?, runs.parse()?)
+        }
         ["localize"] => localize_once(),
-        _ => anyhow::bail!("usage: workload match N f32|f16|int8 | workload localize"),
+        _ => anyhow::bail!(
+            "usage: workload match N f32|f16|int8 | workload time N f32|f16|int8 RUNS | workload localize"
+        ),
     }
 }
 
-fn match_once(n: usize, precision: &str) -> anyhow::Result<()> {
-    let precision = match precision {
+fn parse_precision(name: &str) -> anyhow::Result<Precision> {
+    Ok(match name {
         "f32" => Precision::F32,
         "f16" => Precision::F16,
         "int8" => Precision::Int8,
         other => anyhow::bail!("unknown precision {other}"),
-    };
+    })
+}
+
+/// The reference fixture weights converted to `precision` (nearest rounding).
+fn fixture_blob(precision: Precision) -> anyhow::Result<Vec<u8>> {
     let checkpoint = std::fs::read(workload::shared("reference/fixtures/weights.safetensors"))?;
     let options = Options {
         rounding: Rounding::Nearest,
         ..Options::new(precision)
     };
-    let (blob, _) = convert_with(&checkpoint, &options)?;
-    let model = Model::from_bytes(&blob)?;
+    Ok(convert_with(&checkpoint, &options)?.0)
+}
+
+/// One match of the query-view pair of `n` points; the number of matches.
+fn run_match(model: &Model<'_>, precision: Precision, n: usize) -> anyhow::Result<usize> {
     let (query, db) = workload::pair(n);
-    let matches = if precision == Precision::F32 {
+    Ok(if precision == Precision::F32 {
         let mut m = MATCHER_F32.lock().expect("lock");
-        m.match_pair(&model, &query, &db)?.len()
+        m.match_pair(model, &query, &db)?.len()
     } else {
         let mut m = MATCHER_F16.lock().expect("lock");
-        m.match_pair(&model, &query, &db)?.len()
-    };
+        m.match_pair(model, &query, &db)?.len()
+    })
+}
+
+fn match_once(n: usize, precision: Precision) -> anyhow::Result<()> {
+    let blob = fixture_blob(precision)?;
+    let model = Model::from_bytes(&blob)?;
+    let matches = run_match(&model, precision, n)?;
     println!("match N={n} {precision:?}: {matches} matches");
+    Ok(())
+}
+
+fn time_matches(n: usize, precision: Precision, runs: usize) -> anyhow::Result<()> {
+    anyhow::ensure!(runs > 0, "RUNS must be at least 1");
+    let blob = fixture_blob(precision)?;
+    let model = Model::from_bytes(&blob)?;
+    let mut matches = 0;
+    for _ in 0..WARMUP {
+        matches = run_match(&model, precision, n)?;
+    }
+    let mut ms: Vec<f64> = (0..runs)
+        .map(|_| {
+            let start = Instant::now();
+            run_match(&model, precision, n).map(|_| start.elapsed().as_secs_f64() * 1e3)
+        })
+        .collect::<anyhow::Result<_>>()?;
+    ms.sort_by(f64::total_cmp);
+    let result = serde_json::json!({
+        "n": n,
+        "precision": format!("{precision:?}").to_lowercase(),
+        "runs": runs,
+        "median_ms": ms[runs / 2],
+        "min_ms": ms[0],
+        "max_ms": ms[runs - 1],
+        "matches": matches,
+    });
+    println!("RESULT {result}");
     Ok(())
 }
 
