@@ -68,7 +68,7 @@ for run in "${runs[@]}"; do
   case $run in
   match-*-*)
     IFS=- read -r _ n precision <<<"$run"
-    count "$run" '*Matcher*::match_pair' match "$n" "$precision"
+    count "$run" '*workload::run_match' match "$n" "$precision"
     ;;
   localize-1024-int8) count "$run" '*Localizer*::localize' localize ;;
   *) echo "unknown run $run" >&2 && exit 2 ;;

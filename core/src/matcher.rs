@@ -27,7 +27,8 @@ use crate::nn::{l2_normalize_points, ROW_BLOCK};
 /// Rows of `N` values in the row scratch: per-row temporaries of the layers (a chunk of
 /// output rows waiting for their instance norm), Sinkhorn vectors, norms. Sized by its
 /// largest user, the classifier: [`ROW_BLOCK`] rows for up to `2 N` matches (the
-/// mutual assignment's fallback). That also holds Sinkhorn's `6 N + 4` values (`N >= 2`)
+/// mutual assignment's fallback). That also holds Sinkhorn's `6 N + 4` values (`N >= 2`), the
+/// mutual assignment's `4 N`
 /// and self attention's `(1 + ROW_BLOCK) N`.
 pub const SCRATCH_ROWS: usize = 2 * ROW_BLOCK;
 use crate::limits::{MAX_FEATURE_DIM, MAX_KNN};

@@ -198,6 +198,19 @@ impl<S: PlanScalar> Transport<'_, S> {
         ((-self.cost(i, j) + self.u[i]) + self.v[j]) * (1.0 / self.params.eps)
     }
 
+    /// [`Transport::log_plan`] of the real columns of row `i < n3`, into `out` (`n2`
+    /// values), through `buf` (`n2` values: the row's costs as f32).
+    #[inline(always)]
+    pub fn log_plan_row<'o>(&self, i: usize, buf: &mut [f32], out: &'o mut [f32]) -> &'o [f32] {
+        let n2 = self.n2;
+        let costs = S::row_f32(&self.cost[i * n2..(i + 1) * n2], buf);
+        let (ui, inv_eps) = (self.u[i], 1.0 / self.params.eps);
+        for ((o, &c), &vj) in out[..n2].iter_mut().zip(costs).zip(self.v) {
+            *o = ((-c + ui) + vj) * inv_eps;
+        }
+        &out[..n2]
+    }
+
     /// Plan entry `P_ij = exp(M_ij)` (the reference's score matrix).
     pub fn plan(&self, i: usize, j: usize) -> f32 {
         libm::expf(self.log_plan(i, j))
@@ -406,7 +419,11 @@ pub struct Match {
 /// of each row, `nn21` = best row of each column (first maximum on ties); the mutual pairs
 /// in row order, or, if there are 4 or fewer, every pair of either direction (unique,
 /// sorted by 3D then 2D index). Writes the matches into `out` and returns their count.
-/// `best` holds `n2` values of scratch; `nn12` `n3` and `nn21` `n2` indices.
+/// `best` holds `4 n2` values of scratch; `nn12` `n3` and `nn21` `n2` indices.
+///
+/// The maxima are those of the plan entries `expf(M_ij)`, as the reference compares them
+/// (two entries whose logs differ may round to one plan value, a tie that the first index
+/// wins), but `expf` runs only where it can decide: [`plan_argmaxima`].
 pub fn mutual_assignment<S: PlanScalar>(
     t: &Transport<'_, S>,
     nn12: &mut [u16],
@@ -416,25 +433,7 @@ pub fn mutual_assignment<S: PlanScalar>(
 ) -> usize {
     let (n3, n2) = (t.n3, t.n2);
     let (nn12, nn21) = (&mut nn12[..n3], &mut nn21[..n2]);
-    let best = &mut best[..n2];
-    best.fill(f32::NEG_INFINITY);
-    nn21.fill(0);
-    for (i, own) in nn12.iter_mut().enumerate() {
-        let mut row_best = f32::NEG_INFINITY;
-        let mut row_arg = 0;
-        for (j, (column_best, column_arg)) in best.iter_mut().zip(nn21.iter_mut()).enumerate() {
-            let p = t.plan(i, j);
-            if p > row_best {
-                row_best = p;
-                row_arg = j;
-            }
-            if p > *column_best {
-                *column_best = p;
-                *column_arg = i as u16;
-            }
-        }
-        *own = row_arg as u16;
-    }
+    plan_argmaxima(t, nn12, nn21, best);
     let mut count = 0;
     for (i, &own) in nn12.iter().enumerate() {
         let j = usize::from(own);
@@ -454,6 +453,75 @@ pub fn mutual_assignment<S: PlanScalar>(
         }
     }
     count
+}
+
+/// Widest gap between two log-plan entries whose plan values can be equal where the
+/// plan value is a normal f32: `libm::expf` is within 1 ulp, so `expf(x) == expf(m)` needs
+/// `m - x` below about `2.4e-7`; an entry further below a row's or column's largest log
+/// cannot be its maximum nor tie with it.
+const TIE_WINDOW: f64 = 1e-5;
+
+/// The first maximum of the plan in each row (`nn12`) and column (`nn21`), as a scan of
+/// `expf(M_ij)` finds it, in two passes over the rows: the largest log `M_ij` per row and
+/// column, then `expf` of the entries within [`TIE_WINDOW`] of it (all of them where the
+/// largest plan value is not a normal f32, so underflowed or overflowed ties are decided
+/// as the scan decides them). `scratch` holds `4 n2` values.
+fn plan_argmaxima<S: PlanScalar>(
+    t: &Transport<'_, S>,
+    nn12: &mut [u16],
+    nn21: &mut [u16],
+    scratch: &mut [f32],
+) {
+    let n2 = t.n2;
+    let (column_floor, rest) = scratch[..4 * n2].split_at_mut(n2);
+    let (column_best, rest) = rest.split_at_mut(n2);
+    let (buf, logs) = rest.split_at_mut(n2);
+    column_floor.fill(f32::NEG_INFINITY);
+    for i in 0..t.n3 {
+        let row = t.log_plan_row(i, buf, logs);
+        for (m, &x) in column_floor.iter_mut().zip(row) {
+            *m = if x > *m { x } else { *m };
+        }
+    }
+    for m in column_floor.iter_mut() {
+        *m = candidate_floor(*m);
+    }
+    column_best.fill(f32::NEG_INFINITY);
+    nn21.fill(0);
+    for (i, own) in nn12.iter_mut().enumerate() {
+        let row = t.log_plan_row(i, buf, logs);
+        let row_max = row
+            .iter()
+            .fold(f32::NEG_INFINITY, |m, &x| if x > m { x } else { m });
+        let row_floor = candidate_floor(row_max);
+        let mut row_best = f32::NEG_INFINITY;
+        let mut row_arg = 0;
+        for (j, (&x, &floor)) in row.iter().zip(column_floor.iter()).enumerate() {
+            if x < row_floor && x < floor {
+                continue;
+            }
+            let p = libm::expf(x);
+            if x >= row_floor && p > row_best {
+                row_best = p;
+                row_arg = j;
+            }
+            if x >= floor && p > column_best[j] {
+                column_best[j] = p;
+                nn21[j] = i as u16;
+            }
+        }
+        *own = row_arg as u16;
+    }
+}
+
+/// The smallest log-plan value that can reach or tie the plan value of `max`: all of them
+/// where that value is not a normal f32 (zero, subnormal or infinite values tie more widely).
+fn candidate_floor(max: f32) -> f32 {
+    if libm::expf(max).is_normal() {
+        (f64::from(max) - TIE_WINDOW) as f32
+    } else {
+        f32::NEG_INFINITY
+    }
 }
 
 fn pair<S: PlanScalar>(t: &Transport<'_, S>, i: usize, j: usize) -> Match {
@@ -563,7 +631,7 @@ mod tests {
         let cost = [0.1f32, 0.5, 0.5, 0.5, 0.1, 0.5, 0.5, 0.5, 0.1];
         let (u, v) = ([0.0; 4], [0.0; 4]);
         let t = transport(&cost, &u, &v, n3, n2);
-        let (mut nn12, mut nn21, mut best) = ([0; 3], [0; 3], [0.0; 3]);
+        let (mut nn12, mut nn21, mut best) = ([0; 3], [0; 3], [0.0; 12]);
         let mut out = [Match::default(); 6];
         // 3 mutual pairs <= 4: fallback to the union, which equals them here.
         let count = mutual_assignment(&t, &mut nn12, &mut nn21, &mut best, &mut out);
@@ -583,5 +651,70 @@ mod tests {
         let pairs: heapless::Vec<(u16, u16), 6> =
             out[..count].iter().map(|m| (m.i3d, m.i2d)).collect();
         assert_eq!(pairs, [(0, 0), (0, 1), (1, 0), (2, 2)]);
+    }
+
+    /// The plan's first row and column maxima of a scan of `expf` over every entry.
+    fn scanned_argmaxima(t: &Transport<'_, f32>) -> (std::vec::Vec<u16>, std::vec::Vec<u16>) {
+        let mut rows = std::vec![0u16; t.n3];
+        let mut columns = std::vec![0u16; t.n2];
+        let mut column_best = std::vec![f32::NEG_INFINITY; t.n2];
+        for (i, row) in rows.iter_mut().enumerate() {
+            let mut best = f32::NEG_INFINITY;
+            for j in 0..t.n2 {
+                let p = t.plan(i, j);
+                if p > best {
+                    best = p;
+                    *row = j as u16;
+                }
+                if p > column_best[j] {
+                    column_best[j] = p;
+                    columns[j] = i as u16;
+                }
+            }
+        }
+        (rows, columns)
+    }
+
+    /// The windowed argmaxima equal the full scan's, also where distinct logs round to
+    /// one plan value (ties the first index wins) and where whole rows underflow to zero.
+    #[test]
+    fn plan_argmaxima_equal_a_scan_of_every_entry() {
+        extern crate std;
+        let (n3, n2) = (7, 9);
+        let mut state = 12_345u32;
+        let mut next = move || {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (state >> 8) as f32 / (1u32 << 24) as f32
+        };
+        for case in 0..200 {
+            let mut cost: std::vec::Vec<f32> = (0..n3 * n2).map(|_| 0.5 + next()).collect();
+            // Ties: near-zero costs a few f32 steps apart, the smallest one later in its
+            // row (or column), so both plan values round to the same f32 and the scan keeps
+            // the earlier, slightly smaller log.
+            let (row, column) = (case % n3, case % n2);
+            let smallest = 1e-4 * (1.0 + next());
+            let step = 1 + case as u32 % 3;
+            if case % 2 == 0 {
+                cost[row * n2 + n2 - 1] = smallest;
+                cost[row * n2 + column % (n2 - 1)] = f32::from_bits(smallest.to_bits() + step);
+            } else {
+                cost[(n3 - 1) * n2 + column] = smallest;
+                cost[(row % (n3 - 1)) * n2 + column] = f32::from_bits(smallest.to_bits() + step);
+            }
+            let mut u = std::vec![0.0f32; n3 + 1];
+            let v = std::vec![0.0f32; n2 + 1];
+            if case % 5 == 0 {
+                u[(row + 1) % n3] = -200.0; // this row's plan values underflow to zero
+            }
+            let t = transport(&cost, &u, &v, n3, n2);
+            let (mut nn12, mut nn21, mut scratch) = ([0u16; 7], [0u16; 9], [0.0f32; 36]);
+            plan_argmaxima(&t, &mut nn12, &mut nn21, &mut scratch);
+            let (rows, columns) = scanned_argmaxima(&t);
+            assert_eq!(
+                (&nn12[..], &nn21[..]),
+                (&rows[..], &columns[..]),
+                "case {case}"
+            );
+        }
     }
 }

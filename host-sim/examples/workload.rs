@@ -61,22 +61,29 @@ fn fixture_blob(precision: Precision) -> anyhow::Result<Vec<u8>> {
     Ok(convert_with(&checkpoint, &options)?.0)
 }
 
-/// One match of the query-view pair of `n` points; the number of matches.
-fn run_match(model: &Model<'_>, precision: Precision, n: usize) -> anyhow::Result<usize> {
-    let (query, db) = workload::pair(n);
+/// One match of a query-view pair; the number of matches. Never inlined: callgrind counts
+/// inside this function (`tools/callgrind.sh`), whatever the compiler inlines below it.
+#[inline(never)]
+fn run_match(
+    model: &Model<'_>,
+    precision: Precision,
+    query: &[[f32; 2]],
+    db: &[[f32; 2]],
+) -> anyhow::Result<usize> {
     Ok(if precision == Precision::F32 {
         let mut m = MATCHER_F32.lock().expect("lock");
-        m.match_pair(model, &query, &db)?.len()
+        m.match_pair(model, query, db)?.len()
     } else {
         let mut m = MATCHER_F16.lock().expect("lock");
-        m.match_pair(model, &query, &db)?.len()
+        m.match_pair(model, query, db)?.len()
     })
 }
 
 fn match_once(n: usize, precision: Precision) -> anyhow::Result<()> {
     let blob = fixture_blob(precision)?;
     let model = Model::from_bytes(&blob)?;
-    let matches = run_match(&model, precision, n)?;
+    let (query, db) = workload::pair(n);
+    let matches = run_match(&model, precision, &query, &db)?;
     println!("match N={n} {precision:?}: {matches} matches");
     Ok(())
 }
@@ -85,14 +92,15 @@ fn time_matches(n: usize, precision: Precision, runs: usize) -> anyhow::Result<(
     anyhow::ensure!(runs > 0, "RUNS must be at least 1");
     let blob = fixture_blob(precision)?;
     let model = Model::from_bytes(&blob)?;
+    let (query, db) = workload::pair(n);
     let mut matches = 0;
     for _ in 0..WARMUP {
-        matches = run_match(&model, precision, n)?;
+        matches = run_match(&model, precision, &query, &db)?;
     }
     let mut ms: Vec<f64> = (0..runs)
         .map(|_| {
             let start = Instant::now();
-            run_match(&model, precision, n).map(|_| start.elapsed().as_secs_f64() * 1e3)
+            run_match(&model, precision, &query, &db).map(|_| start.elapsed().as_secs_f64() * 1e3)
         })
         .collect::<anyhow::Result<_>>()?;
     ms.sort_by(f64::total_cmp);

@@ -57,6 +57,10 @@ pub struct Args {
     /// Co-visible views per query.
     #[arg(long, default_value_t = 10)]
     pub k: usize,
+    /// Localizer capacity `N`: keypoints per query and points per view (`Localizer<N, _>`);
+    /// 128 and 256 are the small-part configurations of docs/embedded.md.
+    #[arg(long, default_value_t = CAPACITY, value_parser = parse_capacity)]
+    pub capacity: usize,
     /// Send the ground-truth matches to the pose solver instead of the matcher's.
     #[arg(long)]
     pub oracle: bool,
@@ -290,6 +294,23 @@ fn default_ransac_iterations() -> u32 {
     1000
 }
 
+/// The capacity of reports written before it was recorded.
+fn default_capacity() -> usize {
+    CAPACITY
+}
+
+/// Capacities `eval --capacity` offers.
+pub const CAPACITIES: [usize; 3] = [128, 256, CAPACITY];
+
+fn parse_capacity(text: &str) -> Result<usize, String> {
+    let n: usize = text.parse().map_err(|e| format!("{e}"))?;
+    if CAPACITIES.contains(&n) {
+        Ok(n)
+    } else {
+        Err(format!("one of {CAPACITIES:?}"))
+    }
+}
+
 /// Summary of an evaluation: the JSON report.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Report {
@@ -301,6 +322,9 @@ pub struct Report {
     pub precision_sinkhorn: SinkhornPrecision,
     /// Co-visible views per query.
     pub k: usize,
+    /// Localizer capacity (keypoints per query, points per view).
+    #[serde(default = "default_capacity")]
+    pub capacity: usize,
     /// Protocol seed.
     pub seed: u64,
     /// Cap on RANSAC's minimal samples per query.
@@ -410,10 +434,10 @@ struct Outcome {
     timings: StageTimings,
 }
 
-fn oracle_outcome(
+fn oracle_outcome<const N: usize>(
     sample: &QuerySample,
     config: &RansacConfig,
-    workspace: &mut PnpWorkspace<CAPACITY>,
+    workspace: &mut PnpWorkspace<N>,
 ) -> Outcome {
     let start = Instant::now();
     let (bearings, points) = oracle_correspondences(sample);
@@ -465,8 +489,8 @@ pub fn query_pixels(sample: &QuerySample) -> Vec<[f32; 2]> {
 }
 
 /// Runs the core localizer on one protocol sample with its co-visible view ids.
-fn localizer_outcome<S: PlanScalar>(
-    localizer: &mut Localizer<CAPACITY, S>,
+fn localizer_outcome<const N: usize, S: PlanScalar>(
+    localizer: &mut Localizer<N, S>,
     model: &Model<'_>,
     map: &Map<'_>,
     point_index: &BTreeMap<PointId, u32>,
@@ -609,9 +633,42 @@ fn score(sample: &QuerySample, outcome: Outcome) -> QueryResult {
     }
 }
 
+/// [`run_workers`] with the localizer capacity of the protocol (`--capacity`); also the
+/// workspace bytes of one worker (the localizer's, or the pose solver's for the oracle).
+fn run_at_capacity<S: PlanScalar + Send>(
+    samples: &[QuerySample],
+    matching: Matching<'_>,
+    map: &Map<'_>,
+    point_index: &BTreeMap<PointId, u32>,
+    options: &EvalOptions,
+    progress: &ProgressBar,
+) -> anyhow::Result<(Vec<QueryResult>, usize)> {
+    fn bytes<const N: usize, S: PlanScalar>(matching: Matching<'_>) -> usize {
+        match matching {
+            Matching::Oracle => PnpWorkspace::<N>::BYTES,
+            Matching::Model { .. } => Localizer::<N, S>::BYTES,
+        }
+    }
+    Ok(match options.protocol.max_keypoints {
+        128 => (
+            run_workers::<128, S>(samples, matching, map, point_index, options, progress)?,
+            bytes::<128, S>(matching),
+        ),
+        256 => (
+            run_workers::<256, S>(samples, matching, map, point_index, options, progress)?,
+            bytes::<256, S>(matching),
+        ),
+        CAPACITY => (
+            run_workers::<CAPACITY, S>(samples, matching, map, point_index, options, progress)?,
+            bytes::<CAPACITY, S>(matching),
+        ),
+        other => anyhow::bail!("capacity {other} is not one of {CAPACITIES:?}"),
+    })
+}
+
 /// Localizes every sample in `threads` workers; query `i` goes to worker `i % threads`,
 /// and each worker owns one localizer, so results do not depend on the thread count.
-fn run_workers<S: PlanScalar + Send>(
+fn run_workers<const N: usize, S: PlanScalar + Send>(
     samples: &[QuerySample],
     matching: Matching<'_>,
     map: &Map<'_>,
@@ -629,8 +686,8 @@ fn run_workers<S: PlanScalar + Send>(
                     .name(format!("localizer-{worker}"))
                     .stack_size(WORKER_STACK)
                     .spawn_scoped(scope, move || -> anyhow::Result<()> {
-                        let mut localizer = Localizer::<CAPACITY, S>::new();
-                        let mut workspace = PnpWorkspace::<CAPACITY>::new();
+                        let mut localizer = Localizer::<N, S>::new();
+                        let mut workspace = PnpWorkspace::<N>::new();
                         for (i, sample) in samples.iter().enumerate().skip(worker).step_by(threads)
                         {
                             let outcome = match matching {
@@ -721,10 +778,9 @@ pub fn evaluate(
     } else {
         ProgressBar::hidden()
     };
-    let (per_query, localizer_bytes, model_bytes, precision) = match matching {
+    let ((per_query, localizer_bytes), model_bytes, precision) = match matching {
         Matching::Oracle => (
-            run_workers::<f32>(&samples, matching, &map, &point_index, options, &progress)?,
-            PnpWorkspace::<CAPACITY>::BYTES,
+            run_at_capacity::<f32>(&samples, matching, &map, &point_index, options, &progress)?,
             0,
             SinkhornPrecision::F32,
         ),
@@ -733,8 +789,7 @@ pub fn evaluate(
             precision: SinkhornPrecision::F16,
             ..
         } => (
-            run_workers::<f16>(&samples, matching, &map, &point_index, options, &progress)?,
-            Localizer::<CAPACITY, f16>::BYTES,
+            run_at_capacity::<f16>(&samples, matching, &map, &point_index, options, &progress)?,
             blob_bytes,
             SinkhornPrecision::F16,
         ),
@@ -743,8 +798,7 @@ pub fn evaluate(
             precision: SinkhornPrecision::F32,
             ..
         } => (
-            run_workers::<f32>(&samples, matching, &map, &point_index, options, &progress)?,
-            Localizer::<CAPACITY, f32>::BYTES,
+            run_at_capacity::<f32>(&samples, matching, &map, &point_index, options, &progress)?,
             blob_bytes,
             SinkhornPrecision::F32,
         ),
@@ -775,6 +829,7 @@ pub fn evaluate(
         },
         precision_sinkhorn: precision,
         k: options.protocol.k,
+        capacity: options.protocol.max_keypoints,
         seed: options.protocol.seed,
         ransac_max_iterations: options.localizer.ransac.max_iterations,
         queries: n,
@@ -903,8 +958,8 @@ pub fn report_errors(report: &Report) -> Vec<f64> {
 
 fn print_report(report: &Report) {
     println!(
-        "{} k={} {}: {} queries, {} failures",
-        report.scene, report.k, report.matcher, report.queries, report.failures
+        "{} k={} N={} {}: {} queries, {} failures",
+        report.scene, report.k, report.capacity, report.matcher, report.queries, report.failures
     );
     println!(
         "  reprojection AUC @1/5/10 px: {:.2} / {:.2} / {:.2} %",
@@ -981,7 +1036,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let mut scene = source.load()?;
     scene.name = source.name();
     let options = EvalOptions {
-        protocol: ProtocolParams::for_localizer(args.k, args.queries, args.seed, CAPACITY),
+        protocol: ProtocolParams::for_localizer(args.k, args.queries, args.seed, args.capacity),
         localizer: LocalizerConfig {
             ransac: RansacConfig {
                 max_iterations: args.ransac_iterations,

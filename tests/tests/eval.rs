@@ -373,3 +373,42 @@ fn acceptance_counts_are_consistent_with_the_queries() {
         }
     }
 }
+
+/// `--capacity 128`: the protocol gives at most 128 keypoints per query, the report records
+/// the capacity and the small localizer's workspace, and the shipped model still localizes
+/// a synthetic query with it.
+#[test]
+fn a_small_capacity_caps_the_keypoints_and_runs_the_small_localizer() {
+    let Some(blob) = shipped_int8_model() else {
+        return;
+    };
+    let model = Model::from_bytes(&blob).unwrap();
+    let matching = Matching::Model {
+        model: &model,
+        blob_bytes: blob.len(),
+        precision: SinkhornPrecision::F16,
+    };
+    let scene = synthetic_scene(1, 0);
+    let small = EvalOptions {
+        protocol: ProtocolParams::for_localizer(3, 4, 0, 128),
+        ..options(3, 4, 2)
+    };
+    let report = evaluate(&scene, matching, &small, false).unwrap();
+    print(&report);
+    assert_eq!(report.capacity, 128);
+    assert_eq!(
+        report.localizer_bytes,
+        gomatch::Localizer::<128, half::f16>::BYTES
+    );
+    assert!(report.per_query.iter().all(|q| q.keypoints <= 128));
+    assert!(report.mean_views_used <= 3.0);
+    assert!(report
+        .per_query
+        .iter()
+        .any(|q| q.rotation_deg.is_some_and(|r| r < 1.0)));
+    let unknown = EvalOptions {
+        protocol: ProtocolParams::for_localizer(3, 4, 0, 100),
+        ..options(3, 4, 1)
+    };
+    assert!(evaluate(&scene, matching, &unknown, false).is_err());
+}

@@ -10,8 +10,10 @@
 #   tools/train/acceptance_reports.sh [OUT_DIR]
 #
 # Environment: QUERIES per scene (default 25), THREADS (default 1), MODEL (default models/gomatch-int8.bin),
-# BIN (a gomatch-sim binary to use instead of building target/release/gomatch-sim). A scene whose report
-# exists is kept (delete it to re-run), so an interrupted run resumes.
+# BIN (a gomatch-sim binary to use instead of building target/release/gomatch-sim), CAPACITY (the localizer's
+# keypoints per query and points per view, default 1024) and CHECK (the validation reports the fitted rule is
+# checked on, default models/eval-all/*-int8.json). A scene whose report exists is kept (delete it to re-run),
+# so an interrupted run resumes.
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/../.." && pwd)
 out=${1:-$repo/models/acceptance/train-all}
@@ -32,10 +34,12 @@ for dir in "$data"/colmap/* "$data"/opensfm/*; do
   name=$(basename "$dir")
   case " $validation " in *" $kind/$name "*) continue ;; esac
   [ -s "$out/$name.json" ] && continue
-  "$bin" eval --"$kind" "$dir" --model "$model" --k 10 --queries "$queries" --seed 0 --threads "$threads" \
-    --json "$out/$name.json" >"$out/$name.log" 2>&1 || echo "eval failed on $kind/$name (see $out/$name.log)"
+  "$bin" eval --"$kind" "$dir" --model "$model" --k 10 --capacity "${CAPACITY:-1024}" --queries "$queries" \
+    --seed 0 --threads "$threads" --json "$out/$name.json" >"$out/$name.log" 2>&1 ||
+    echo "eval failed on $kind/$name (see $out/$name.log)"
 done
 python3 "$repo/tools/train/acceptance_table.py" "$out"/*.json
 rule=${RULE:-$(dirname "$out")/refit-rule.json}
-"$bin" fit-acceptance --reports "$out"/*.json --check "$repo"/models/eval-all/*-int8.json \
+# shellcheck disable=SC2086 # CHECK is a glob
+"$bin" fit-acceptance --reports "$out"/*.json --check ${CHECK:-"$repo"/models/eval-all/*-int8.json} \
   --out "$rule" | tee "${rule%.json}.txt"

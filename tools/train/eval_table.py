@@ -37,7 +37,8 @@ BOOTSTRAP_SEED = 0
 
 def row(report: dict, precision: str) -> str:
     auc = " / ".join(f"{report[k]:.2f}" for k in AUC_KEYS)
-    rot = " / ".join(f"{v:.2f}" for v in report["rot_deg_q"])
+    quartiles = report["rot_deg_q"]  # None when no query was localized
+    rot = " / ".join(f"{v:.2f}" for v in quartiles) if quartiles else "-"
     inliers = report["mean_counts"]["inliers"]
     ms = report["mean_timings_ms"]["total"]
     return (
