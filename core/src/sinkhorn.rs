@@ -423,7 +423,7 @@ pub struct Match {
 ///
 /// The maxima are those of the plan entries `expf(M_ij)`, as the reference compares them
 /// (two entries whose logs differ may round to one plan value, a tie that the first index
-/// wins), but `expf` runs only where it can decide: [`plan_argmaxima`].
+/// wins), but `expf` runs only where it can decide (near each row's and column's largest log).
 pub fn mutual_assignment<S: PlanScalar>(
     t: &Transport<'_, S>,
     nn12: &mut [u16],

@@ -19,9 +19,13 @@ pub trait Fma: Copy {
     fn mul_add(self, a: f32, b: f32, c: f32) -> f32;
 
     /// The integer kernel's register block at point `p` of a tile
-    /// ([`integer::block_sums`]; exact, so every implementation gives the same sums).
+    /// ([`integer::block_sums`], with NEON on AArch64; exact, so every implementation gives
+    /// the same sums).
     #[inline(always)]
     fn pair_sums(self, w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
+        #[cfg(all(target_arch = "aarch64", target_feature = "neon"))]
+        return integer::block_sums_neon(w, x, p);
+        #[cfg(not(all(target_arch = "aarch64", target_feature = "neon")))]
         integer::block_sums(w, x, p)
     }
 }

@@ -362,8 +362,56 @@ pub fn block_sums_avx2(
     sums
 }
 
+/// [`block_sums`] with AArch64 NEON: `smlal`/`smlal2` multiply four points' pairs by the
+/// row's pair (each lane one product, even lanes channel `k`, odd lanes `k + 1`), and one
+/// `addp` at the end adds each point's two lanes. A block is a whole tile (`p` is 0), done
+/// in two halves of 8 points so that the 16 accumulators stay in registers.
+#[cfg(all(target_arch = "aarch64", target_feature = "neon"))]
+#[inline(always)]
+#[allow(unsafe_code)]
+pub fn block_sums_neon(w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
+    use core::arch::aarch64::{
+        int16x8_t, int32x4_t, vdupq_n_s32, vget_low_s16, vld1q_s16, vmlal_high_s16, vmlal_s16,
+        vpaddq_s32, vreinterpretq_s16_s32, vst1q_s32,
+    };
+    const HALF: usize = POINTS / 2;
+    debug_assert_eq!((p, POINTS, TILE), (0, 16, 16));
+    let mut sums = [[0i32; POINTS]; ROWS];
+    // SAFETY: NEON is enabled (`cfg` above). Each load reads 4 pairs (16 bytes) of a
+    // `[Pair; 16]` at pair 0, 4, 8 or 12, and each store writes 4 `i32` into a `[i32; 16]`
+    // at 0, 4, 8 or 12: all in bounds; `ld1`/`st1` need only the elements' alignment.
+    unsafe {
+        for half in [0, HALF] {
+            let zero = vdupq_n_s32(0);
+            let (mut even, mut odd): ([[int32x4_t; 2]; ROWS], [[int32x4_t; 2]; ROWS]) =
+                ([[zero; 2]; ROWS], [[zero; 2]; ROWS]);
+            for (wk, xk) in w.iter().zip(x) {
+                let points: [int16x8_t; 2] =
+                    [0, 4].map(|at| vld1q_s16(xk.as_ptr().add(half + at).cast()));
+                for ((e, o), wr) in even.iter_mut().zip(odd.iter_mut()).zip(wk) {
+                    let weights = vreinterpretq_s16_s32(vdupq_n_s32(pair_bits(*wr)));
+                    for ((e, o), &xs) in e.iter_mut().zip(o.iter_mut()).zip(&points) {
+                        *e = vmlal_s16(*e, vget_low_s16(xs), vget_low_s16(weights));
+                        *o = vmlal_high_s16(*o, xs, weights);
+                    }
+                }
+            }
+            for ((row, e), o) in sums.iter_mut().zip(&even).zip(&odd) {
+                for (at, (&e, &o)) in [0, 4].into_iter().zip(e.iter().zip(o)) {
+                    vst1q_s32(row.as_mut_ptr().add(half + at), vpaddq_s32(e, o));
+                }
+            }
+        }
+    }
+    sums
+}
+
 /// A pair as one 32-bit word: channel `k` in the low half, as `vpmaddwd` and `smlad` read it.
-#[cfg(any(target_arch = "x86_64", all(feature = "arm-dsp", target_arch = "arm")))]
+#[cfg(any(
+    target_arch = "x86_64",
+    all(target_arch = "aarch64", target_feature = "neon"),
+    all(feature = "arm-dsp", target_arch = "arm")
+))]
 #[inline(always)]
 fn pair_bits(pair: Pair) -> i32 {
     (u32::from(pair[0] as u16) | u32::from(pair[1] as u16) << 16) as i32
@@ -476,8 +524,9 @@ mod tests {
     }
 
     /// 9 rows (a partial row block) x 37 inputs (an odd count) on 45 points (a partial tile),
-    /// one point all zero: the dispatched kernel, the portable one and the definition agree bit
-    /// for bit, and the result is within the activations' rounding of the f32 product.
+    /// one point all zero: the dispatched kernel (AVX2 where the CPU has it), the portable one
+    /// (NEON on AArch64) and the definition agree bit for bit, and the result is within the
+    /// activations' rounding of the f32 product.
     #[test]
     fn integer_kernel_follows_its_definition_on_every_path() {
         const N: usize = 45;
