@@ -633,15 +633,21 @@ fn score(sample: &QuerySample, outcome: Outcome) -> QueryResult {
     }
 }
 
+/// What the localizer workers run on.
+#[derive(Clone, Copy)]
+struct Work<'a, 'm> {
+    samples: &'a [QuerySample],
+    matching: Matching<'m>,
+    map: &'a Map<'m>,
+    point_index: &'a BTreeMap<PointId, u32>,
+    options: &'a EvalOptions,
+    progress: &'a ProgressBar,
+}
+
 /// [`run_workers`] with the localizer capacity of the protocol (`--capacity`); also the
 /// workspace bytes of one worker (the localizer's, or the pose solver's for the oracle).
 fn run_at_capacity<S: PlanScalar + Send>(
-    samples: &[QuerySample],
-    matching: Matching<'_>,
-    map: &Map<'_>,
-    point_index: &BTreeMap<PointId, u32>,
-    options: &EvalOptions,
-    progress: &ProgressBar,
+    work: Work<'_, '_>,
 ) -> anyhow::Result<(Vec<QueryResult>, usize)> {
     fn bytes<const N: usize, S: PlanScalar>(matching: Matching<'_>) -> usize {
         match matching {
@@ -649,18 +655,12 @@ fn run_at_capacity<S: PlanScalar + Send>(
             Matching::Model { .. } => Localizer::<N, S>::BYTES,
         }
     }
-    Ok(match options.protocol.max_keypoints {
-        128 => (
-            run_workers::<128, S>(samples, matching, map, point_index, options, progress)?,
-            bytes::<128, S>(matching),
-        ),
-        256 => (
-            run_workers::<256, S>(samples, matching, map, point_index, options, progress)?,
-            bytes::<256, S>(matching),
-        ),
+    Ok(match work.options.protocol.max_keypoints {
+        128 => (run_workers::<128, S>(work)?, bytes::<128, S>(work.matching)),
+        256 => (run_workers::<256, S>(work)?, bytes::<256, S>(work.matching)),
         CAPACITY => (
-            run_workers::<CAPACITY, S>(samples, matching, map, point_index, options, progress)?,
-            bytes::<CAPACITY, S>(matching),
+            run_workers::<CAPACITY, S>(work)?,
+            bytes::<CAPACITY, S>(work.matching),
         ),
         other => anyhow::bail!("capacity {other} is not one of {CAPACITIES:?}"),
     })
@@ -669,13 +669,16 @@ fn run_at_capacity<S: PlanScalar + Send>(
 /// Localizes every sample in `threads` workers; query `i` goes to worker `i % threads`,
 /// and each worker owns one localizer, so results do not depend on the thread count.
 fn run_workers<const N: usize, S: PlanScalar + Send>(
-    samples: &[QuerySample],
-    matching: Matching<'_>,
-    map: &Map<'_>,
-    point_index: &BTreeMap<PointId, u32>,
-    options: &EvalOptions,
-    progress: &ProgressBar,
+    work: Work<'_, '_>,
 ) -> anyhow::Result<Vec<QueryResult>> {
+    let Work {
+        samples,
+        matching,
+        map,
+        point_index,
+        options,
+        progress,
+    } = work;
     let threads = options.threads.clamp(1, samples.len().max(1));
     let results: Mutex<Vec<Option<QueryResult>>> = Mutex::new(vec![None; samples.len()]);
     std::thread::scope(|scope| -> anyhow::Result<()> {
@@ -778,18 +781,22 @@ pub fn evaluate(
     } else {
         ProgressBar::hidden()
     };
+    let work = Work {
+        samples: &samples,
+        matching,
+        map: &map,
+        point_index: &point_index,
+        options,
+        progress: &progress,
+    };
     let ((per_query, localizer_bytes), model_bytes, precision) = match matching {
-        Matching::Oracle => (
-            run_at_capacity::<f32>(&samples, matching, &map, &point_index, options, &progress)?,
-            0,
-            SinkhornPrecision::F32,
-        ),
+        Matching::Oracle => (run_at_capacity::<f32>(work)?, 0, SinkhornPrecision::F32),
         Matching::Model {
             blob_bytes,
             precision: SinkhornPrecision::F16,
             ..
         } => (
-            run_at_capacity::<f16>(&samples, matching, &map, &point_index, options, &progress)?,
+            run_at_capacity::<f16>(work)?,
             blob_bytes,
             SinkhornPrecision::F16,
         ),
@@ -798,7 +805,7 @@ pub fn evaluate(
             precision: SinkhornPrecision::F32,
             ..
         } => (
-            run_at_capacity::<f32>(&samples, matching, &map, &point_index, options, &progress)?,
+            run_at_capacity::<f32>(work)?,
             blob_bytes,
             SinkhornPrecision::F32,
         ),

@@ -230,26 +230,28 @@ fn ground_truth_pairs_name_the_map_points_of_the_views() {
     }
 }
 
-/// The shipped int8 model's bytes, or `None` (with a SKIPPED line) without `models/`.
-fn shipped_int8_model() -> Option<Vec<u8>> {
+/// The shipped int8 model as the matcher with an f16 cost (the device configuration), or
+/// `None` (with a SKIPPED line) without `models/`. Its blob and model live for the rest of
+/// the test process.
+fn shipped_int8_matching() -> Option<Matching<'static>> {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/gomatch-int8.bin");
-    let blob = std::fs::read(&path).ok();
-    if blob.is_none() {
+    let Ok(blob) = std::fs::read(&path) else {
         println!("SKIPPED: no shipped model at {}", path.display());
-    }
-    blob
+        return None;
+    };
+    let blob: &'static [u8] = Box::leak(blob.into_boxed_slice());
+    let model: &'static Model<'static> = Box::leak(Box::new(Model::from_bytes(blob).unwrap()));
+    Some(Matching::Model {
+        model,
+        blob_bytes: blob.len(),
+        precision: SinkhornPrecision::F16,
+    })
 }
 
 #[test]
 fn correct_matches_are_counted_among_the_merged_matches_and_inliers() {
-    let Some(blob) = shipped_int8_model() else {
+    let Some(matching) = shipped_int8_matching() else {
         return;
-    };
-    let model = Model::from_bytes(&blob).unwrap();
-    let matching = Matching::Model {
-        model: &model,
-        blob_bytes: blob.len(),
-        precision: SinkhornPrecision::F16,
     };
     let scene = synthetic_scene(1, 0);
     let report = evaluate(&scene, matching, &options(10, 4, 2), false).unwrap();
@@ -296,14 +298,8 @@ fn correct_matches_are_counted_among_the_merged_matches_and_inliers() {
 /// and a rule that refuses everything leaves the candidates as they were.
 #[test]
 fn acceptance_counts_are_consistent_with_the_queries() {
-    let Some(blob) = shipped_int8_model() else {
+    let Some(matching) = shipped_int8_matching() else {
         return;
-    };
-    let model = Model::from_bytes(&blob).unwrap();
-    let matching = Matching::Model {
-        model: &model,
-        blob_bytes: blob.len(),
-        precision: SinkhornPrecision::F16,
     };
     let scene = synthetic_scene(1, 1);
     let report = evaluate(&scene, matching, &options(10, 4, 2), false).unwrap();
@@ -379,14 +375,8 @@ fn acceptance_counts_are_consistent_with_the_queries() {
 /// a synthetic query with it.
 #[test]
 fn a_small_capacity_caps_the_keypoints_and_runs_the_small_localizer() {
-    let Some(blob) = shipped_int8_model() else {
+    let Some(matching) = shipped_int8_matching() else {
         return;
-    };
-    let model = Model::from_bytes(&blob).unwrap();
-    let matching = Matching::Model {
-        model: &model,
-        blob_bytes: blob.len(),
-        precision: SinkhornPrecision::F16,
     };
     let scene = synthetic_scene(1, 0);
     let small = EvalOptions {
