@@ -10,7 +10,7 @@
 
 use crate::limits::{MAX_FEATURE_DIM, MAX_HEADS, MAX_KNN};
 use crate::nn::dispatch::{with_fma, Fma, Kernel};
-use crate::nn::linear::{accumulate, chunk_rows, store, store_point_major};
+use crate::nn::linear::{accumulate, chunk_rows, larger, store, store_point_major};
 use crate::nn::{exp, instance_norm, leaky_relu, linear, relu, Input, Moments};
 use crate::weights::{CrossLayerWeights, Linear, SelfLayerWeights};
 
@@ -71,15 +71,6 @@ pub struct SelfScratch<'s> {
     /// more rows or points per call (each call unpacks its weights and, on the integer
     /// kernel, quantizes its input once).
     pub spare: &'s mut [f32],
-}
-
-/// The larger of two scratch buffers.
-fn larger<'a>(a: &'a mut [f32], b: &'a mut [f32]) -> &'a mut [f32] {
-    if a.len() >= b.len() {
-        a
-    } else {
-        b
-    }
 }
 
 /// One EdgeConv self-attention layer (supp. eq. 4-5) on `x` (`d x n`), in place: the output

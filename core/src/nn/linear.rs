@@ -184,6 +184,15 @@ fn panel_rows(cols: usize) -> usize {
     (PANEL_FLOATS / cols.max(1) / ROW_BLOCK * ROW_BLOCK).clamp(ROW_BLOCK, PANEL_MAX_ROWS)
 }
 
+/// The larger of two scratch buffers (the one [`chunk_rows`] gets more rows from).
+pub fn larger<'a>(a: &'a mut [f32], b: &'a mut [f32]) -> &'a mut [f32] {
+    if a.len() >= b.len() {
+        a
+    } else {
+        b
+    }
+}
+
 /// Output rows to compute per call when they must wait in a scratch of `scratch` values
 /// for `n` points: as many as fit (fewer calls, so fewer passes over the input), at least
 /// [`ROW_BLOCK`].

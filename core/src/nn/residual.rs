@@ -2,7 +2,7 @@
 //! `out = ReLU(IN(W2 IN(W1 (W0 x + b0) + b1) + b2)) + x`, no activation between the
 //! convolutions, each computed as the reference does (no folding, see [`crate::weights`]).
 
-use super::linear::{chunk_rows, linear, store, Input};
+use super::linear::{chunk_rows, larger, linear, store, Input};
 use super::norm::{instance_norm, relu};
 use crate::weights::ResidualBlockWeights;
 
@@ -24,7 +24,7 @@ pub fn residual_block(
         instance_norm(row);
     }
     let input = Input::one(inner, d, n);
-    let rows = if tile.len() > rows.len() { tile } else { rows };
+    let rows = larger(tile, rows);
     let chunk = chunk_rows(rows.len(), n);
     let mut r0 = 0;
     while r0 < d {
