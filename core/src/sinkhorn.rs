@@ -7,7 +7,7 @@
 //! The transport plan `P = exp((-C + u_i + v_j) / eps)` is never stored either: it is
 //! evaluated on demand from the cost and the potentials `u`, `v`.
 
-use crate::nn::dispatch::{with_fma, Fma, Kernel};
+use crate::nn::dispatch::{f16_to_f32, with_fma, Fma, Kernel, Portable};
 use crate::nn::linear::WeightRows;
 use crate::nn::{exp, linear, Input};
 
@@ -19,13 +19,9 @@ pub trait PlanScalar: bytemuck::Pod {
     fn from_f32(x: f32) -> Self;
     /// Reads storage back as f32.
     fn to_f32(self) -> f32;
-    /// A stored row as f32: the row itself for f32, converted into `buf` otherwise.
-    fn row_f32<'a>(row: &'a [Self], buf: &'a mut [f32]) -> &'a [f32] {
-        for (b, c) in buf.iter_mut().zip(row) {
-            *b = c.to_f32();
-        }
-        &buf[..row.len()]
-    }
+    /// A stored row as f32: the row itself for f32, converted into `buf` (with the CPU's
+    /// conversion instruction where `fma` has one) otherwise.
+    fn row_f32<'a, F: Fma>(fma: F, row: &'a [Self], buf: &'a mut [f32]) -> &'a [f32];
 }
 
 impl PlanScalar for f32 {
@@ -38,7 +34,8 @@ impl PlanScalar for f32 {
     fn to_f32(self) -> f32 {
         self
     }
-    fn row_f32<'a>(row: &'a [Self], _buf: &'a mut [f32]) -> &'a [f32] {
+    #[inline(always)]
+    fn row_f32<'a, F: Fma>(_fma: F, row: &'a [Self], _buf: &'a mut [f32]) -> &'a [f32] {
         row
     }
 }
@@ -53,23 +50,11 @@ impl PlanScalar for half::f16 {
     fn to_f32(self) -> f32 {
         f16_to_f32(self.to_bits())
     }
-}
-
-/// Exact f16 -> f32 for every finite f16 (normal, subnormal, zero), branch-free so a row
-/// converts with vector instructions (infinities and NaN, which a cost never is, map to
-/// finite values).
-#[inline(always)]
-fn f16_to_f32(bits: u16) -> f32 {
-    let sign = u32::from(bits & 0x8000) << 16;
-    let magnitude = u32::from(bits & 0x7FFF);
-    // Normal: rebias the exponent from 15 to 127 ((127 - 15) << 23 = 0x3800_0000).
-    let normal = f32::from_bits(((magnitude << 13) + 0x3800_0000) | sign);
-    // Subnormal or zero: mantissa * 2^-24, exact in f32.
-    let small = f32::from_bits((magnitude as f32 * 5.960_464_5e-8).to_bits() | sign);
-    if magnitude >= 0x0400 {
-        normal
-    } else {
-        small
+    #[inline(always)]
+    fn row_f32<'a, F: Fma>(fma: F, row: &'a [Self], buf: &'a mut [f32]) -> &'a [f32] {
+        let out = &mut buf[..row.len()];
+        fma.widen_f16(bytemuck::cast_slice(row), out);
+        out
     }
 }
 
@@ -203,7 +188,7 @@ impl<S: PlanScalar> Transport<'_, S> {
     #[inline(always)]
     pub fn log_plan_row<'o>(&self, i: usize, buf: &mut [f32], out: &'o mut [f32]) -> &'o [f32] {
         let n2 = self.n2;
-        let costs = S::row_f32(&self.cost[i * n2..(i + 1) * n2], buf);
+        let costs = S::row_f32(Portable, &self.cost[i * n2..(i + 1) * n2], buf);
         let (ui, inv_eps) = (self.u[i], 1.0 / self.params.eps);
         for ((o, &c), &vj) in out[..n2].iter_mut().zip(costs).zip(self.v) {
             *o = ((-c + ui) + vj) * inv_eps;
@@ -229,9 +214,11 @@ fn log_marginal(m: usize, n: usize, dustbin: bool) -> f32 {
     libm::logf(mass + 1e-8)
 }
 
-/// `max + ln(sum exp(x - max))` of one row given by `values`, in 8 lanes.
+/// `max + ln(sum exp(x - max))` of one row given by `values`, which are replaced by their
+/// terms `exp(x - max)` (a loop of its own, so that it runs in the widest vectors), summed
+/// in 8 interleaved lanes.
 #[inline(always)]
-fn logsumexp(values: &[f32]) -> f32 {
+fn logsumexp_in_place(values: &mut [f32]) -> f32 {
     let mut maxima = [f32::NEG_INFINITY; 8];
     let mut chunks = values.chunks_exact(8);
     for chunk in &mut chunks {
@@ -244,15 +231,18 @@ fn logsumexp(values: &[f32]) -> f32 {
         .iter()
         .chain(&maxima)
         .fold(f32::NEG_INFINITY, |m, &x| if x > m { x } else { m });
+    for x in values.iter_mut() {
+        *x = exp(*x - max);
+    }
     let mut lanes = [0.0f32; 8];
     let mut chunks = values.chunks_exact(8);
     for chunk in &mut chunks {
         for (l, &x) in lanes.iter_mut().zip(chunk) {
-            *l += exp(x - max);
+            *l += x;
         }
     }
     for (l, &x) in lanes.iter_mut().zip(chunks.remainder()) {
-        *l += exp(x - max);
+        *l += x;
     }
     let sum = ((lanes[0] + lanes[1]) + (lanes[2] + lanes[3]))
         + ((lanes[4] + lanes[5]) + (lanes[6] + lanes[7]));
@@ -299,31 +289,23 @@ struct Sinkhorn<'a, S> {
 impl<S: PlanScalar> Kernel<usize> for Sinkhorn<'_, S> {
     /// Plain f32 arithmetic (no fused operations): the same bits compiled for any CPU.
     #[inline(always)]
-    fn run<F: Fma>(self, _fma: F) -> usize {
-        let Sinkhorn {
-            cost,
-            n3,
-            n2,
-            params,
-            u,
-            v,
-            scratch,
-        } = self;
-        sinkhorn_vectorised(cost, n3, n2, params, u, v, scratch)
+    fn run<F: Fma>(self, fma: F) -> usize {
+        sinkhorn_vectorised(fma, self)
     }
 }
 
 /// [`sinkhorn`], compiled into the caller (for the widest vectors the CPU has).
 #[inline(always)]
-fn sinkhorn_vectorised<S: PlanScalar>(
-    cost: &[S],
-    n3: usize,
-    n2: usize,
-    params: &SinkhornParams,
-    u: &mut [f32],
-    v: &mut [f32],
-    scratch: &mut [f32],
-) -> usize {
+fn sinkhorn_vectorised<F: Fma, S: PlanScalar>(fma: F, args: Sinkhorn<'_, S>) -> usize {
+    let Sinkhorn {
+        cost,
+        n3,
+        n2,
+        params,
+        u,
+        v,
+        scratch,
+    } = args;
     let (u, v) = (&mut u[..n3 + 1], &mut v[..n2 + 1]);
     u.fill(0.0);
     v.fill(0.0);
@@ -349,7 +331,7 @@ fn sinkhorn_vectorised<S: PlanScalar>(
         col_max.fill(f32::NEG_INFINITY);
         for (i, ui) in u.iter_mut().enumerate() {
             let costs = if i < n3 {
-                S::row_f32(&cost[i * n2..(i + 1) * n2], buf)
+                S::row_f32(fma, &cost[i * n2..(i + 1) * n2], buf)
             } else {
                 &*bins
             };
@@ -359,7 +341,7 @@ fn sinkhorn_vectorised<S: PlanScalar>(
             }
             row[n2] = log_plan(bin, old, v[n2]);
             let target = if i < n3 { log_mu } else { log_mu_bin };
-            let new = eps * (target - logsumexp(row)) + old;
+            let new = eps * (target - logsumexp_in_place(row)) + old;
             *ui = new;
             for ((m, &c), &vj) in col_max.iter_mut().zip(costs).zip(v.iter()) {
                 let x = log_plan(c, new, vj);
@@ -371,7 +353,7 @@ fn sinkhorn_vectorised<S: PlanScalar>(
         col_sum.fill(0.0);
         for (i, &ui) in u.iter().enumerate() {
             let costs = if i < n3 {
-                S::row_f32(&cost[i * n2..(i + 1) * n2], buf)
+                S::row_f32(fma, &cost[i * n2..(i + 1) * n2], buf)
             } else {
                 &*bins
             };
@@ -566,20 +548,6 @@ mod tests {
             n2,
             params: PARAMS,
             iterations: 0,
-        }
-    }
-
-    #[test]
-    fn f16_conversion_is_exact_for_every_finite_value() {
-        for bits in 0..=u16::MAX {
-            let h = half::f16::from_bits(bits);
-            if h.is_finite() {
-                assert_eq!(
-                    f16_to_f32(bits).to_bits(),
-                    h.to_f32().to_bits(),
-                    "{bits:#06x}"
-                );
-            }
         }
     }
 

@@ -3,7 +3,7 @@
 //!
 //! The kernels that round with fused multiply-adds (the linear layer, instance norm) are
 //! generic over [`Fma`] and entered through [`with_fma`], which hands them [`X86Fma`] inside
-//! a function compiled for AVX2 and FMA when the CPU has both (checked once with `cpuid`
+//! a function compiled for AVX2, FMA and F16C when the CPU has them (checked once with `cpuid`
 //! and `xgetbv`, which work in `no_std`, and cached), and [`Portable`] otherwise. A fused
 //! multiply-add is exactly specified, so both give the same bits (see [`super::fma`]).
 
@@ -28,6 +28,33 @@ pub trait Fma: Copy {
         #[cfg(not(all(target_arch = "aarch64", target_feature = "neon")))]
         integer::block_sums(w, x, p)
     }
+
+    /// `out[i] = bits[i]` read as an f16 (`out` as long as `bits`), exact for every finite
+    /// value ([`f16_to_f32`]; F16C's `vcvtph2ps` on x86-64).
+    #[inline(always)]
+    fn widen_f16(self, bits: &[u16], out: &mut [f32]) {
+        for (o, &b) in out.iter_mut().zip(bits) {
+            *o = f16_to_f32(b);
+        }
+    }
+}
+
+/// Exact f16 -> f32 for every finite f16 (normal, subnormal, zero), branch-free so a row
+/// converts with vector instructions (infinities and NaN, which a Sinkhorn cost never is,
+/// map to finite values).
+#[inline(always)]
+pub fn f16_to_f32(bits: u16) -> f32 {
+    let sign = u32::from(bits & 0x8000) << 16;
+    let magnitude = u32::from(bits & 0x7FFF);
+    // Normal: rebias the exponent from 15 to 127 ((127 - 15) << 23 = 0x3800_0000).
+    let normal = f32::from_bits(((magnitude << 13) + 0x3800_0000) | sign);
+    // Subnormal or zero: mantissa * 2^-24, exact in f32.
+    let small = f32::from_bits((magnitude as f32 * 5.960_464_5e-8).to_bits() | sign);
+    if magnitude >= 0x0400 {
+        normal
+    } else {
+        small
+    }
 }
 
 /// [`super::fma::mul_add`]: the instruction where the build enables it, else libm's exact
@@ -42,7 +69,7 @@ impl Fma for Portable {
     }
 }
 
-/// The x86-64 FMA instruction. A value exists only on a CPU with AVX2 and FMA (it is made
+/// The x86-64 FMA instruction. A value exists only on a CPU with AVX2, FMA and F16C (it is made
 /// by [`X86Fma::detect`]), which makes its use sound.
 #[cfg(target_arch = "x86_64")]
 #[derive(Clone, Copy)]
@@ -60,7 +87,7 @@ pub fn set_portable_only(portable: bool) {
 
 #[cfg(target_arch = "x86_64")]
 impl X86Fma {
-    /// The token if this CPU has AVX2 and FMA and the OS saves the AVX registers (and
+    /// The token if this CPU has AVX2, FMA and F16C and the OS saves the AVX registers (and
     /// [`set_portable_only`] is off).
     pub fn detect() -> Option<Self> {
         let state = match STATE.load(Ordering::Relaxed) {
@@ -90,9 +117,31 @@ impl Fma for X86Fma {
     fn pair_sums(self, w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
         integer::block_sums_avx2(self, w, x, p)
     }
+
+    #[inline(always)]
+    #[allow(unsafe_code)]
+    fn widen_f16(self, bits: &[u16], out: &mut [f32]) {
+        use core::arch::x86_64::{_mm256_cvtph_ps, _mm256_storeu_ps, _mm_loadu_si128};
+        let out = &mut out[..bits.len()];
+        let mut halves = bits.chunks_exact(8);
+        let mut floats = out.chunks_exact_mut(8);
+        for (h, f) in (&mut halves).zip(&mut floats) {
+            // SAFETY: an `X86Fma` exists only when `detect` found F16C; `h` holds 8 f16
+            // (16 bytes) and `f` 8 f32 (32 bytes), read and written unaligned.
+            unsafe {
+                _mm256_storeu_ps(
+                    f.as_mut_ptr(),
+                    _mm256_cvtph_ps(_mm_loadu_si128(h.as_ptr().cast())),
+                )
+            }
+        }
+        for (f, &h) in floats.into_remainder().iter_mut().zip(halves.remainder()) {
+            *f = f16_to_f32(h);
+        }
+    }
 }
 
-/// `cpuid` leaf 1: FMA, OSXSAVE and AVX; `xgetbv`: the OS saves the SSE and AVX state;
+/// `cpuid` leaf 1: FMA, OSXSAVE, AVX and F16C; `xgetbv`: the OS saves the SSE and AVX state;
 /// `cpuid` leaf 7: AVX2 (Intel SDM vol. 1, 14.3 "Detection of Intel AVX instructions").
 #[cfg(target_arch = "x86_64")]
 #[allow(unsafe_code, unused_unsafe)]
@@ -101,11 +150,12 @@ fn cpu_has_avx2_fma() -> bool {
     const FMA: u32 = 1 << 12;
     const OSXSAVE: u32 = 1 << 27;
     const AVX: u32 = 1 << 28;
+    const F16C: u32 = 1 << 29;
     const AVX2: u32 = 1 << 5;
     const XMM_YMM_STATE: u64 = 0b110;
     // SAFETY: every x86-64 CPU has `cpuid`.
     let (max_leaf, leaf1) = unsafe { (__cpuid(0).eax, __cpuid(1)) };
-    if max_leaf < 7 || leaf1.ecx & (FMA | OSXSAVE | AVX) != FMA | OSXSAVE | AVX {
+    if max_leaf < 7 || leaf1.ecx & (FMA | OSXSAVE | AVX | F16C) != FMA | OSXSAVE | AVX | F16C {
         return false;
     }
     // SAFETY: OSXSAVE (checked above) means the OS enabled `xgetbv`.
@@ -115,7 +165,7 @@ fn cpu_has_avx2_fma() -> bool {
     xcr0 & XMM_YMM_STATE == XMM_YMM_STATE && leaf7.ebx & AVX2 != 0
 }
 
-/// Runs `kernel` with the best [`Fma`] of this CPU: on x86-64 with AVX2 and FMA inside a
+/// Runs `kernel` with the best [`Fma`] of this CPU: on x86-64 with AVX2, FMA and F16C inside a
 /// function compiled for them (so the kernel, inlined there, uses 256-bit FMA
 /// instructions), else with [`Portable`]. `kernel` must be `#[inline(always)]`-able code
 /// (a closure calling the generic kernel).
@@ -141,16 +191,16 @@ pub trait Kernel<R> {
     fn run<F: Fma>(self, fma: F) -> R;
 }
 
-/// Runs `kernel` compiled for AVX2 and FMA.
+/// Runs `kernel` compiled for AVX2, FMA and F16C.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 #[allow(unsafe_code)]
 fn run_avx2_fma<R>(fma: X86Fma, kernel: impl Kernel<R>) -> R {
-    #[target_feature(enable = "avx2,fma")]
+    #[target_feature(enable = "avx2,fma,f16c")]
     unsafe fn avx2_fma<R>(fma: X86Fma, kernel: impl Kernel<R>) -> R {
         kernel.run(fma)
     }
-    // SAFETY: `fma` proves the CPU has AVX2 and FMA.
+    // SAFETY: `fma` proves the CPU has AVX2, FMA and F16C.
     unsafe { avx2_fma(fma, kernel) }
 }
 
@@ -174,6 +224,36 @@ mod tests {
             let got = with_fma(Probe(x, y, z));
             assert_eq!(got, libm::fmaf(x, y, z).to_bits());
             assert_eq!(Portable.mul_add(x, y, z).to_bits(), got);
+        }
+    }
+
+    struct Widen<'a>(&'a [u16], &'a mut [f32]);
+
+    impl Kernel<()> for Widen<'_> {
+        fn run<F: Fma>(self, fma: F) {
+            fma.widen_f16(self.0, self.1);
+        }
+    }
+
+    /// Every finite f16, converted by the dispatched variant (rows of every length mod 8, so
+    /// both the vector body and the tail run) and by the definition, is half's exact value.
+    #[test]
+    fn f16_rows_widen_exactly() {
+        let finite: std::vec::Vec<u16> = (0..=u16::MAX)
+            .filter(|&b| half::f16::from_bits(b).is_finite())
+            .collect();
+        for row in finite.chunks(1021) {
+            let mut out = std::vec![f32::NAN; row.len() + 3];
+            with_fma(Widen(row, &mut out));
+            for (&b, &x) in row.iter().zip(&out) {
+                let exact = half::f16::from_bits(b).to_f32().to_bits();
+                assert_eq!(x.to_bits(), exact, "{b:#06x}");
+                assert_eq!(f16_to_f32(b).to_bits(), exact, "{b:#06x}");
+            }
+            assert!(
+                out[row.len()..].iter().all(|x| x.is_nan()),
+                "wrote past the row"
+            );
         }
     }
 
