@@ -325,7 +325,8 @@ struct AttentionShape {
 }
 
 /// Queries attended together: each key and value loaded serves all of them (8 x 8 score
-/// accumulators: half of the 16 AVX2 vector registers). Grouping queries changes no bit.
+/// accumulators: half of the 16 AVX2 vector registers; 16 KiB of score tiles on the stack).
+/// Grouping queries changes no bit.
 const QUERY_BLOCK: usize = 8;
 /// Source points per block of the online softmax (a multiple of [`LANES`]).
 const SOURCE_BLOCK: usize = 64;
