@@ -13,7 +13,8 @@ use super::fma::mul_add;
 use super::integer::{self, BlockSums, TilePairs, WeightPairs};
 
 /// The CPU's multiply-add instructions: a fused multiply-add `a * b + c` with a single
-/// rounding (the f32 kernels) and the exact int16 pair multiply-add (the integer kernel).
+/// rounding (the f32 kernels) and the exact int16 pair multiply-add (the integer kernel);
+/// also its exact f16 -> f32 conversion (Sinkhorn's f16 cost rows).
 pub trait Fma: Copy {
     /// `a * b + c`, rounded once.
     fn mul_add(self, a: f32, b: f32, c: f32) -> f32;
