@@ -330,11 +330,7 @@ fn sinkhorn_vectorised<F: Fma, S: PlanScalar>(fma: F, args: Sinkhorn<'_, S>) -> 
         // with the new u_i while the row is at hand.
         col_max.fill(f32::NEG_INFINITY);
         for (i, ui) in u.iter_mut().enumerate() {
-            let costs = if i < n3 {
-                S::row_f32(fma, &cost[i * n2..(i + 1) * n2], buf)
-            } else {
-                &*bins
-            };
+            let costs = cost_row(fma, cost, n3, n2, i, buf, bins);
             let old = *ui;
             for ((r, &c), &vj) in row.iter_mut().zip(costs).zip(v.iter()) {
                 *r = log_plan(c, old, vj);
@@ -352,11 +348,7 @@ fn sinkhorn_vectorised<F: Fma, S: PlanScalar>(fma: F, args: Sinkhorn<'_, S>) -> 
         // Columns with the new u: v_j = eps (log nu_j - LSE_i M_ij) + v_j.
         col_sum.fill(0.0);
         for (i, &ui) in u.iter().enumerate() {
-            let costs = if i < n3 {
-                S::row_f32(fma, &cost[i * n2..(i + 1) * n2], buf)
-            } else {
-                &*bins
-            };
+            let costs = cost_row(fma, cost, n3, n2, i, buf, bins);
             for (((s, &c), &vj), &m) in col_sum
                 .iter_mut()
                 .zip(costs)
@@ -382,6 +374,25 @@ fn sinkhorn_vectorised<F: Fma, S: PlanScalar>(fma: F, args: Sinkhorn<'_, S>) -> 
         }
     }
     iterations
+}
+
+/// Row `i <= n3` of the cost as f32: a real row (converted into `buf` where it is stored
+/// as f16) or, for `i == n3`, the dustbin row `bins`.
+#[inline(always)]
+fn cost_row<'a, F: Fma, S: PlanScalar>(
+    fma: F,
+    cost: &'a [S],
+    n3: usize,
+    n2: usize,
+    i: usize,
+    buf: &'a mut [f32],
+    bins: &'a [f32],
+) -> &'a [f32] {
+    if i < n3 {
+        S::row_f32(fma, &cost[i * n2..(i + 1) * n2], buf)
+    } else {
+        bins
+    }
 }
 
 /// One 2D-3D correspondence.
