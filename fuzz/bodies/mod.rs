@@ -13,6 +13,7 @@ use gomatch::link::{
     self, decode_frame, encode_frame, Device, LocalizeRequest, NoPin, Request, RequestBody,
     Response, Service, Views,
 };
+use gomatch::weights::ModelConfig;
 use gomatch::{Camera, Localizer, LocalizerConfig, Map, Model, Pose, Query, ViewSelection};
 use gomatch_sim::scene::Scene;
 
@@ -22,6 +23,17 @@ const RX: usize = link::rx_frame_len(CAPACITY);
 /// RANSAC samples per localization: few, so that an execution stays short (random
 /// weights give no good matches, and the default 10,000 samples would dominate).
 const RANSAC_ITERATIONS: u32 = 64;
+/// The fixture's model: [`ModelConfig::TINY`] with few Sinkhorn iterations, which
+/// otherwise take most of an execution.
+const FUZZ_MODEL: ModelConfig = ModelConfig {
+    sinkhorn_iters: 3,
+    ..ModelConfig::TINY
+};
+/// Points of the fixture's map, each seen by both views.
+pub const FIXTURE_POINTS: usize = 24;
+/// Keypoints of the fixture's query (the `localize` target draws its own, up to
+/// `CAPACITY + 2`).
+const FIXTURE_KEYPOINTS: usize = 16;
 /// Ids of the requests sent after the noise in [`device_link`].
 const PROBE_IDS: [u32; 3] = [0xF00D_0001, 0xF00D_0002, 0xF00D_0003];
 
@@ -61,10 +73,10 @@ pub struct Fixture {
 pub fn fixture() -> &'static Fixture {
     static FIXTURE: OnceLock<Fixture> = OnceLock::new();
     FIXTURE.get_or_init(|| {
-        let model = gomatch_sim::tiny::tiny_model_blob(5).expect("tiny model");
-        let map = gomatch_sim::tiny::tiny_map_blob().expect("tiny map");
+        let model = gomatch_sim::tiny::random_model_blob(&FUZZ_MODEL, 5).expect("tiny model");
+        let map = gomatch_sim::tiny::tiny_map_blob(FIXTURE_POINTS).expect("tiny map");
         let camera = gomatch_sim::tiny::tiny_camera().expect("tiny camera");
-        let pixels = gomatch_sim::tiny::tiny_query(0.05, CAPACITY);
+        let pixels = gomatch_sim::tiny::tiny_query(0.05, FIXTURE_KEYPOINTS);
         let probe_frames = probe_frames(camera, &pixels);
         let mut fixture = Fixture {
             model,

@@ -22,7 +22,9 @@ use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64Mcg;
 
 use crate::device::{HostLink, LinkStats, Received, RequestError, RetryPolicy, Transport};
-use crate::tiny::{tiny_camera, tiny_map_blob, tiny_model_blob, tiny_query, TINY_VIEWS};
+use crate::tiny::{
+    tiny_camera, tiny_map_blob, tiny_model_blob, tiny_query, TINY_POINTS, TINY_VIEWS,
+};
 
 /// Keypoint capacity of the soak's device.
 pub const SOAK_CAPACITY: usize = 64;
@@ -322,7 +324,7 @@ fn soak_queries() -> Vec<(Vec<[f32; 2]>, Views)> {
 /// is compared with a direct call.
 pub fn soak(config: &SoakConfig) -> anyhow::Result<SoakReport> {
     let model_blob = tiny_model_blob(5)?;
-    let map_blob = tiny_map_blob()?;
+    let map_blob = tiny_map_blob(TINY_POINTS)?;
     let camera = tiny_camera()?;
     let queries = soak_queries();
     let keypoint_bytes: Vec<Vec<u8>> = queries

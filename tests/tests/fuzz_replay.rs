@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 
 use gomatch::link::{self, encode_frame, Request, RequestBody};
 use gomatch_sim::scene::Scene;
-use gomatch_sim::tiny::{tiny_map_blob, tiny_model_blob, tiny_scene, tiny_scene_txt};
+use gomatch_sim::tiny::{tiny_query, tiny_scene, tiny_scene_txt};
 use nalgebra::UnitQuaternion;
 
 /// Largest seed file.
@@ -209,29 +209,28 @@ fn request_frame(id: u32, body: RequestBody<'_>) -> Vec<u8> {
 
 /// Every seed, by target and file name.
 fn seeds() -> Vec<(&'static str, &'static str, Vec<u8>)> {
-    let model = tiny_model_blob(5).expect("model");
-    let map = tiny_map_blob().expect("map");
-    let scene = tiny_scene().expect("scene");
-    let [cameras_txt, images_txt, points_txt] = tiny_scene_txt();
+    let fixture = bodies::fixture();
+    let (model, map) = (&fixture.model, &fixture.map);
+    let scene = tiny_scene(bodies::FIXTURE_POINTS).expect("scene");
+    let [cameras_txt, images_txt, points_txt] = tiny_scene_txt(bodies::FIXTURE_POINTS);
     let [cameras_bin, images_bin, points_bin] = colmap_bin(&scene);
     let (bal, bundler) = bal_and_bundler();
-    let fixture = bodies::fixture();
-    let pixels = &fixture.pixels;
+    let pixels = &tiny_query(0.05, bodies::CAPACITY);
     let info = request_frame(1, RequestBody::Info);
     let mut cut = request_frame(2, RequestBody::Info);
     cut.truncate(cut.len() - 2);
     let pinhole = [500.0, 320.0, 240.0];
     let opencv = [500.0, 510.0, 320.0, 240.0, -0.1, 0.01, 1e-3, -1e-3];
     vec![
-        ("model_blob", "tiny-f32", with_mode(0, &model)),
-        ("model_blob", "tiny-f32-fixed-header", with_mode(7, &model)),
+        ("model_blob", "tiny-f32", with_mode(0, model)),
+        ("model_blob", "tiny-f32-fixed-header", with_mode(7, model)),
         (
             "model_blob",
             "tiny-f32-cut",
             with_mode(6, &model[..model.len() / 2]),
         ),
-        ("map_blob", "tiny", with_mode(0, &map)),
-        ("map_blob", "tiny-fixed-header", with_mode(7, &map)),
+        ("map_blob", "tiny", with_mode(0, map)),
+        ("map_blob", "tiny-fixed-header", with_mode(7, map)),
         ("map_blob", "tiny-cut", with_mode(6, &map[..map.len() / 2])),
         ("device_link", "no-noise", Vec::new()),
         ("device_link", "info-frame", info.clone()),

@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# Fuzz campaign: runs each named target (default: all) for SECONDS on the long-lived corpus
+# fuzz/corpus/<target> (ignored by git, cargo-fuzz's place for it) and appends one line per run
+# to fuzz/ledger.tsv: date, commit, target, seconds, executions, peak RSS (MB) and "ok" (a
+# failing run stops the campaign and is not recorded; its input is in
+# fuzz/target/artifacts/<target>/). `fuzz/campaign.sh --totals` sums the ledger per target.
+#
+#   bash fuzz/campaign.sh 600 device_link localize
+set -euo pipefail
+cd "$(dirname "$0")"
+source ./common.sh
+ledger=ledger.tsv
+if [ "${1:-}" = --totals ]; then
+  awk -F'\t' 'NR > 1 { runs[$3]++; execs[$3] += $5; secs[$3] += $4 }
+    END { printf "%-12s %5s %8s %14s\n", "target", "runs", "seconds", "executions";
+          for (t in execs) printf "%-12s %5d %8d %14d\n", t, runs[t], secs[t], execs[t] }' "$ledger" | sort
+  exit 0
+fi
+seconds=${1:?usage: fuzz/campaign.sh SECONDS [TARGET...] | --totals}
+shift
+[ "$#" -gt 0 ] && targets="$*"
+build_targets
+commit=$(git rev-parse --short HEAD)
+[ -n "$(git status --porcelain -- . ../core ../host-sim ../tools)" ] && commit="$commit+changes"
+[ -f "$ledger" ] || printf 'date\tcommit\ttarget\tseconds\texecutions\tpeak_rss_mb\tresult\n' >"$ledger"
+for target in $targets; do
+  echo "== fuzz campaign: $target, $seconds s"
+  log=target/campaign-$target.log
+  run_target "$target" "$seconds" "corpus/$target" "$log"
+  execs=$(sed -n 's/^stat::number_of_executed_units: *//p' "$log")
+  rss=$(sed -n 's/^stat::peak_rss_mb: *//p' "$log")
+  printf '%s\t%s\t%s\t%s\t%s\t%s\tok\n' "$(date -u +%FT%TZ)" "$commit" "$target" "$seconds" \
+    "$execs" "$rss" >>"$ledger"
+done
