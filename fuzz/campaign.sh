@@ -21,7 +21,7 @@ shift
 [ "$#" -gt 0 ] && targets="$*"
 build_targets
 commit=$(git rev-parse --short HEAD)
-[ -n "$(git status --porcelain -- . ../core ../host-sim ../tools)" ] && commit="$commit+changes"
+[ -n "$(git status --porcelain -- . ':!ledger.tsv' ../core ../host-sim ../tools)" ] && commit="$commit+changes"
 [ -f "$ledger" ] || printf 'date\tcommit\ttarget\tseconds\texecutions\tpeak_rss_mb\tresult\n' >"$ledger"
 for target in $targets; do
   echo "== fuzz campaign: $target, $seconds s"
