@@ -1,9 +1,11 @@
 //! Self-check of the build's fused multiply-add: the matcher's `mul_add` (the hardware
-//! instruction where the build enables it: `vfma.f32`, `fmadd`, x86 FMA) must give the same
-//! bits as libm's exact `fmaf` over many random triples, or the image's numbers would not
-//! be the host's.
+//! instruction where the build enables it: `vfma.f32`, `fmadd`, x86 FMA) and the linear
+//! kernel's `mul_add_lanes` (NEON `fmla` on AArch64) must give the same bits as libm's exact
+//! `fmaf` over many random triples, or the image's numbers would not be the host's.
 
+use gomatch::nn::dispatch::{Fma, Portable};
 use gomatch::nn::fma::mul_add;
+use gomatch::nn::COL_BLOCK;
 use gomatch::rng::SplitMix64;
 
 /// Random triples checked.
@@ -21,7 +23,8 @@ pub struct Mismatch {
 
 /// Checks [`TRIPLES`] triples, half of arbitrary bit patterns (every exponent, subnormals,
 /// infinities), half with `c` close to `-a * b` so that the sum cancels and the single
-/// rounding decides the last bits.
+/// rounding decides the last bits; then as many again through `mul_add_lanes`, in rows of
+/// [`COL_BLOCK`] lanes sharing one multiplier.
 pub fn run() -> Result<(), Mismatch> {
     let mut rng = SplitMix64::new(0x05EE_DF3A);
     for i in 0..TRIPLES {
@@ -31,17 +34,47 @@ pub fn run() -> Result<(), Mismatch> {
             cancelling(&mut rng)
         };
         let [a, b, c] = operands.map(f32::from_bits);
-        let got = mul_add(a, b, c);
-        let expected = libm::fmaf(a, b, c);
-        // NaN payloads are not specified the same way by every FPU and libm.
-        let same = got.to_bits() == expected.to_bits() || (got.is_nan() && expected.is_nan());
-        if !same {
-            return Err(Mismatch {
-                operands,
-                got: got.to_bits(),
-                expected: expected.to_bits(),
-            });
-        }
+        compare(operands, mul_add(a, b, c))?;
+    }
+    for i in 0..TRIPLES / COL_BLOCK as u32 {
+        check_lanes(&mut rng, i % 2 == 0)?;
+    }
+    Ok(())
+}
+
+/// `got` against `libm::fmaf` on `operands`.
+fn compare(operands: [u32; 3], got: f32) -> Result<(), Mismatch> {
+    let [a, b, c] = operands.map(f32::from_bits);
+    let expected = libm::fmaf(a, b, c);
+    // NaN payloads are not specified the same way by every FPU and libm.
+    if got.to_bits() == expected.to_bits() || (got.is_nan() && expected.is_nan()) {
+        return Ok(());
+    }
+    Err(Mismatch {
+        operands,
+        got: got.to_bits(),
+        expected: expected.to_bits(),
+    })
+}
+
+/// One `mul_add_lanes` call of the linear kernel's width: one multiplier, a row of
+/// arbitrary or cancelling triples sharing it.
+fn check_lanes(rng: &mut SplitMix64, arbitrary_lanes: bool) -> Result<(), Mismatch> {
+    let triples: [[u32; 3]; COL_BLOCK] = if arbitrary_lanes {
+        let w = rng.next_u64() as u32;
+        core::array::from_fn(|_| {
+            let [_, b, c] = arbitrary(rng);
+            [w, b, c]
+        })
+    } else {
+        let w = cancelling(rng)[0];
+        core::array::from_fn(|_| cancelling_with(rng, f32::from_bits(w)))
+    };
+    let x = triples.map(|t| f32::from_bits(t[1]));
+    let mut acc = triples.map(|t| f32::from_bits(t[2]));
+    Portable.mul_add_lanes(f32::from_bits(triples[0][0]), &x, &mut acc);
+    for (operands, got) in triples.into_iter().zip(acc) {
+        compare(operands, got)?;
     }
     Ok(())
 }
@@ -54,15 +87,21 @@ fn arbitrary(rng: &mut SplitMix64) -> [u32; 3] {
 
 /// `a`, `b` of moderate magnitude and `c` = `-(a * b)` rounded, nudged by a few ulps.
 fn cancelling(rng: &mut SplitMix64) -> [u32; 3] {
-    let moderate = |bits: u64| {
-        // Sign and mantissa random, exponent within 2^-16 .. 2^15.
-        let sign_mantissa = (bits as u32) & 0x807F_FFFF;
-        let exponent = 111 + (bits >> 32) as u32 % 32;
-        f32::from_bits(sign_mantissa | exponent << 23)
-    };
     let a = moderate(rng.next_u64());
+    cancelling_with(rng, a)
+}
+
+/// [`cancelling`] with the multiplier `a` given.
+fn cancelling_with(rng: &mut SplitMix64, a: f32) -> [u32; 3] {
     let b = moderate(rng.next_u64());
     let nudge = rng.below(9) as i32 - 4;
     let c = (-(a * b)).to_bits().wrapping_add_signed(nudge);
     [a.to_bits(), b.to_bits(), c]
+}
+
+/// Sign and mantissa random, exponent within 2^-16 .. 2^15.
+fn moderate(bits: u64) -> f32 {
+    let sign_mantissa = (bits as u32) & 0x807F_FFFF;
+    let exponent = 111 + (bits >> 32) as u32 % 32;
+    f32::from_bits(sign_mantissa | exponent << 23)
 }

@@ -19,6 +19,22 @@ pub trait Fma: Copy {
     /// `a * b + c`, rounded once.
     fn mul_add(self, a: f32, b: f32, c: f32) -> f32;
 
+    /// `acc[t] = w * x[t] + acc[t]` in every lane, each rounded once (the f32 linear
+    /// kernel's register rows). The default is one [`Fma::mul_add`] per lane (vectorised by
+    /// the compiler on x86-64 inside [`with_fma`]); on AArch64 NEON's `fmla` on 4 lanes at a
+    /// time, which `asm!`'s scalar `fmadd` would keep the compiler from doing. Exact, so
+    /// every path gives the same bits.
+    #[inline(always)]
+    fn mul_add_lanes<const L: usize>(self, w: f32, x: &[f32; L], acc: &mut [f32; L]) {
+        #[cfg(all(target_arch = "aarch64", target_feature = "neon"))]
+        if L % 4 == 0 {
+            return mul_add_lanes_neon(w, x, acc);
+        }
+        for (a, &xt) in acc.iter_mut().zip(x) {
+            *a = self.mul_add(w, xt, *a);
+        }
+    }
+
     /// The integer kernel's register block at point `p` of a tile
     /// ([`integer::block_sums`], with NEON on AArch64; exact, so every implementation gives
     /// the same sums).
@@ -36,6 +52,23 @@ pub trait Fma: Copy {
     fn widen_f16(self, bits: &[u16], out: &mut [f32]) {
         for (o, &b) in out.iter_mut().zip(bits) {
             *o = f16_to_f32(b);
+        }
+    }
+}
+
+/// [`Fma::mul_add_lanes`] with NEON (`L` a multiple of 4): `vfmaq_f32` is `fmla`, a fused
+/// multiply-add per lane.
+#[cfg(all(target_arch = "aarch64", target_feature = "neon"))]
+#[inline(always)]
+#[allow(unsafe_code)]
+fn mul_add_lanes_neon<const L: usize>(w: f32, x: &[f32; L], acc: &mut [f32; L]) {
+    use core::arch::aarch64::{vdupq_n_f32, vfmaq_f32, vld1q_f32, vst1q_f32};
+    for (a, x) in acc.chunks_exact_mut(4).zip(x.chunks_exact(4)) {
+        // SAFETY: the build enables NEON (checked by the `cfg`); `a` and `x` hold 4 f32
+        // each, read and written through their own pointers.
+        unsafe {
+            let sum = vfmaq_f32(vld1q_f32(a.as_ptr()), vdupq_n_f32(w), vld1q_f32(x.as_ptr()));
+            vst1q_f32(a.as_mut_ptr(), sum);
         }
     }
 }

@@ -400,9 +400,7 @@ fn block<F: Fma, const FULL: bool>(
             }
             rest = rest.get(stride..).unwrap_or(&[]);
             for (a, &wb) in acc.iter_mut().zip(wk) {
-                for t in 0..COL_BLOCK {
-                    a[t] = fma.mul_add(wb, x[t], a[t]);
-                }
+                fma.mul_add_lanes(wb, &x, a);
             }
         }
     }
