@@ -1,10 +1,13 @@
 //! Self-check of the build's fused multiply-add: the matcher's `mul_add` (the hardware
 //! instruction where the build enables it: `vfma.f32`, `fmadd`, x86 FMA) and the linear
 //! kernel's `mul_add_lanes` (NEON `fmla` on AArch64) must give the same bits as libm's exact
-//! `fmaf` over many random triples, or the image's numbers would not be the host's.
+//! `fmaf` over many random triples, or the image's numbers would not be the host's; and the
+//! int8 kernel's register block of this instruction set (`smlad`, NEON, AVX2 through
+//! `pair_sums`) must give the portable block's exact sums.
 
 use gomatch::nn::dispatch::{Fma, Portable};
 use gomatch::nn::fma::mul_add;
+use gomatch::nn::integer::{block_sums, TilePairs, WeightPairs, POINTS, TILE};
 use gomatch::nn::COL_BLOCK;
 use gomatch::rng::SplitMix64;
 
@@ -104,4 +107,43 @@ fn moderate(bits: u64) -> f32 {
     let sign_mantissa = (bits as u32) & 0x807F_FFFF;
     let exponent = 111 + (bits >> 32) as u32 % 32;
     f32::from_bits(sign_mantissa | exponent << 23)
+}
+
+/// Random blocks checked by [`integer_blocks`].
+const BLOCKS: u32 = 2_000;
+
+/// Checks `pair_sums` against the portable [`block_sums`] on [`BLOCKS`] random register
+/// blocks: int8 weights, activations over the whole int16 range (both extremes included),
+/// 1 to 16 channel pairs, every block's offset in a tile. Returns the first block that
+/// differs (its number).
+pub fn integer_blocks() -> Result<(), u32> {
+    let mut rng = SplitMix64::new(0x1A7E_B10C);
+    let extreme = |bits: u64, limit: i16| match bits % 8 {
+        0 => limit,
+        1 => -limit,
+        _ => (bits >> 8) as i16 % limit,
+    };
+    for block in 0..BLOCKS {
+        let pairs = 1 + rng.below(16) as usize;
+        let weights: [WeightPairs; 16] = core::array::from_fn(|_| {
+            core::array::from_fn(|_| [0; 2].map(|_| extreme(rng.next_u64(), 127)))
+        });
+        let tile: [TilePairs; 16] = core::array::from_fn(|_| {
+            core::array::from_fn(|_| [0; 2].map(|_| extreme(rng.next_u64(), 32767)))
+        });
+        let p = POINTS * rng.below((TILE / POINTS) as u32) as usize;
+        let (w, x) = (&weights[..pairs], &tile[..pairs]);
+        let (got, want) = (Portable.pair_sums(w, x, p), block_sums(w, x, p));
+        // Element by element: `==` on the arrays would call `bcmp`, which the x86_64 image
+        // does not have.
+        if got
+            .iter()
+            .flatten()
+            .zip(want.iter().flatten())
+            .any(|(a, b)| a != b)
+        {
+            return Err(block);
+        }
+    }
+    Ok(())
 }

@@ -93,6 +93,9 @@ pub mod exit_code {
     pub const QUERY_REJECTED: i32 = 13;
     /// The build's `mul_add` differs from `libm::fmaf` ([`crate::fma_check`]).
     pub const FMA_MISMATCH: i32 = 14;
+    /// The build's int8 register block differs from the portable one
+    /// ([`crate::fma_check::integer_blocks`]).
+    pub const INTEGER_MISMATCH: i32 = 15;
     /// A panic (none is expected: the core reports every bad input as a value).
     pub const PANIC: i32 = 101;
 }
@@ -360,6 +363,12 @@ fn firmware_main(counter: Option<&'static dyn Counter>) -> i32 {
             mismatch.got, mismatch.expected
         ));
         return exit_code::FMA_MISMATCH;
+    }
+    if let Err(block) = fma_check::integer_blocks() {
+        print(format_args!(
+            "integer kernel check failed: block {block} differs from the portable sums"
+        ));
+        return exit_code::INTEGER_MISMATCH;
     }
     let start = counter.map(|c| c.instructions());
     let (code, timings) = run(localizer, device, counter.map(|c| c.clock()));

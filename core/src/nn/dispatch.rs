@@ -36,13 +36,18 @@ pub trait Fma: Copy {
     }
 
     /// The integer kernel's register block at point `p` of a tile
-    /// ([`integer::block_sums`], with NEON on AArch64; exact, so every implementation gives
+    /// ([`integer::block_sums`], with NEON on AArch64 and `smlad` on ARMv7E-M; exact, so every implementation gives
     /// the same sums).
     #[inline(always)]
     fn pair_sums(self, w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
         #[cfg(all(target_arch = "aarch64", target_feature = "neon"))]
         return integer::block_sums_neon(w, x, p);
-        #[cfg(not(all(target_arch = "aarch64", target_feature = "neon")))]
+        #[cfg(all(feature = "arm-dsp", target_arch = "arm"))]
+        return integer::block_sums_dsp(w, x, p);
+        #[cfg(not(any(
+            all(target_arch = "aarch64", target_feature = "neon"),
+            all(feature = "arm-dsp", target_arch = "arm")
+        )))]
         integer::block_sums(w, x, p)
     }
 

@@ -22,14 +22,14 @@ pub const TILE: usize = 16;
 const ROWS: usize = 4;
 /// Points of one register block.
 #[cfg(not(target_arch = "arm"))]
-const POINTS: usize = 16;
+pub const POINTS: usize = 16;
 /// Output rows of one register block (Cortex-M: 2 rows x 2 points keep the four
 /// accumulators, two weight pairs and two activation pairs in the 13 core registers).
 #[cfg(target_arch = "arm")]
 const ROWS: usize = 2;
 /// Points of one register block.
 #[cfg(target_arch = "arm")]
-const POINTS: usize = 2;
+pub const POINTS: usize = 2;
 /// Largest quantized activation magnitude.
 const Q_MAX: f32 = 32767.0;
 /// Weight pairs one panel holds (32 KiB: each panel quantizes the layer input once, and the
@@ -321,6 +321,58 @@ pub fn block_sums(w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
     acc
 }
 
+/// [`block_sums`] with ARMv7E-M's `smlad` in a loop of its own (the core's `arm-dsp`
+/// feature): per channel pair two weight words, two point words and four `smlad`, 10
+/// instructions where the compiled loop around one `smlad` per `asm!` block took 13.
+#[cfg(all(feature = "arm-dsp", target_arch = "arm"))]
+#[inline(always)]
+#[allow(unsafe_code)]
+pub fn block_sums_dsp(w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
+    const { assert!(ROWS == 2 && POINTS == 2) };
+    let mut acc = [[0i32; POINTS]; ROWS];
+    let pairs = w.len().min(x.len());
+    if p + POINTS > TILE || pairs == 0 {
+        return acc;
+    }
+    let [[mut a00, mut a01], [mut a10, mut a11]] = acc;
+    // SAFETY: the loop reads `pairs` weight pairs of two rows (8 bytes each, from `w`) and,
+    // for each, points `p` and `p + 1` of one tile pair (`x[k][p..p + 2]`, in bounds as
+    // `p + 2 <= TILE`), walking `x` by its 64-byte stride: all inside the two slices.
+    // `ldr` accepts unaligned words on ARMv7-M; `smlad` only touches the registers given
+    // (and may set the sticky Q flag, which nothing reads); the `arm-dsp` feature declares
+    // an ARMv7E-M target, which has the instruction.
+    unsafe {
+        core::arch::asm!(
+            "2:",
+            "ldr {w0}, [{wp}], #4",
+            "ldr {w1}, [{wp}], #4",
+            "ldr {x1}, [{xp}, #4]",
+            "ldr {x0}, [{xp}], #{stride}",
+            "smlad {a00}, {w0}, {x0}, {a00}",
+            "smlad {a01}, {w0}, {x1}, {a01}",
+            "smlad {a10}, {w1}, {x0}, {a10}",
+            "smlad {a11}, {w1}, {x1}, {a11}",
+            "subs {n}, {n}, #1",
+            "bne 2b",
+            stride = const core::mem::size_of::<TilePairs>(),
+            wp = inout(reg) w.as_ptr() => _,
+            xp = inout(reg) x.as_ptr().cast::<Pair>().add(p) => _,
+            n = inout(reg) pairs => _,
+            w0 = out(reg) _,
+            w1 = out(reg) _,
+            x0 = out(reg) _,
+            x1 = out(reg) _,
+            a00 = inout(reg) a00,
+            a01 = inout(reg) a01,
+            a10 = inout(reg) a10,
+            a11 = inout(reg) a11,
+            options(nostack, readonly)
+        );
+    }
+    acc = [[a00, a01], [a10, a11]];
+    acc
+}
+
 /// [`block_sums`] with AVX2's `vpmaddwd` (`_mm256_madd_epi16`: eight pair products summed
 /// into 32-bit lanes per instruction); on x86-64 a block is a whole tile (`p` is 0).
 #[cfg(target_arch = "x86_64")]
@@ -411,8 +463,7 @@ pub fn block_sums_neon(w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSum
 /// A pair as one 32-bit word: channel `k` in the low half, as `vpmaddwd` and `smlad` read it.
 #[cfg(any(
     target_arch = "x86_64",
-    all(target_arch = "aarch64", target_feature = "neon"),
-    all(feature = "arm-dsp", target_arch = "arm")
+    all(target_arch = "aarch64", target_feature = "neon")
 ))]
 #[inline(always)]
 fn pair_bits(pair: Pair) -> i32 {
@@ -421,33 +472,9 @@ fn pair_bits(pair: Pair) -> i32 {
 
 /// `acc + w[0] x[0] + w[1] x[1]` (no overflow: each product is below 2^22, and the sums of
 /// a layer below 2^31).
-#[cfg(not(all(feature = "arm-dsp", target_arch = "arm")))]
 #[inline(always)]
 fn multiply_accumulate(acc: i32, w: Pair, x: Pair) -> i32 {
     acc.wrapping_add(i32::from(w[0]) * i32::from(x[0]) + i32::from(w[1]) * i32::from(x[1]))
-}
-
-/// `acc + w[0] x[0] + w[1] x[1]` in one ARMv7E-M `smlad` (the core's `arm-dsp` feature;
-/// stable Rust cannot test `target_feature = "dsp"`).
-#[cfg(all(feature = "arm-dsp", target_arch = "arm"))]
-#[inline(always)]
-#[allow(unsafe_code)]
-fn multiply_accumulate(acc: i32, w: Pair, x: Pair) -> i32 {
-    let sum: i32;
-    // SAFETY: `smlad` only reads and writes the four core registers given (it may set the
-    // sticky Q flag, which nothing here reads); the `arm-dsp` feature declares an ARMv7E-M
-    // target, which has the instruction.
-    unsafe {
-        core::arch::asm!(
-            "smlad {sum}, {w}, {x}, {acc}",
-            sum = lateout(reg) sum,
-            w = in(reg) pair_bits(w),
-            x = in(reg) pair_bits(x),
-            acc = in(reg) acc,
-            options(pure, nomem, nostack)
-        );
-    }
-    sum
 }
 
 #[cfg(test)]
