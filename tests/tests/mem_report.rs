@@ -40,6 +40,8 @@ fn args(capacity: &[usize], views: &[usize], sinkhorn: &[Sinkhorn], model: PathB
         model: Some(model),
         map: None,
         json: None,
+        images: PathBuf::from("firmware/target"),
+        images_only: false,
     }
 }
 

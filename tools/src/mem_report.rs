@@ -41,6 +41,7 @@ use serde::Serialize;
 
 use crate::convert::{convert, PrecisionArg};
 use crate::files::{find_default, read_map_blob, read_model_blob};
+use crate::image_layout;
 
 /// Capacities reported by default.
 pub const CAPACITIES: [usize; 4] = [128, 256, 512, 1024];
@@ -84,9 +85,16 @@ pub struct Args {
     /// A map blob. Default: the built-in synthetic scene's map (firmware/data/map.bin).
     #[arg(long)]
     pub map: Option<PathBuf>,
-    /// Also write the rows as JSON (`{"rows": [...]}`).
+    /// Also write the rows as JSON (`{"rows": [...], "images": [...]}`).
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Where the firmware images are linked (`<target>/release/gomatch-firmware` below
+    /// it): their section sizes are reported after the rows.
+    #[arg(long, default_value = "firmware/target")]
+    pub images: PathBuf,
+    /// Report only the firmware images' layout (no localization is measured).
+    #[arg(long)]
+    pub images_only: bool,
 }
 
 /// Storage type of the Sinkhorn cost.
@@ -669,19 +677,37 @@ pub fn markdown(rows: &[Row]) -> String {
 
 /// Runs `gomatch-tools mem-report`.
 pub fn run(args: &Args) -> Result<()> {
-    let report = report(args)?;
-    println!("model: {}", report.model_source);
-    println!("map: {}", report.map_source);
-    println!(
-        "query: the map's most observed view re-projected (keypoints per row below in the JSON), views nearest its pose; stack = peak of localize + the pose solver on the true matches\n"
-    );
-    print!("{}", markdown(&report.rows));
+    let rows = if args.images_only {
+        Vec::new()
+    } else {
+        let report = report(args)?;
+        println!("model: {}", report.model_source);
+        println!("map: {}", report.map_source);
+        println!(
+            "query: the map's most observed view re-projected (keypoints per row below in the JSON), views nearest its pose; stack = peak of localize + the pose solver on the true matches\n"
+        );
+        print!("{}", markdown(&report.rows));
+        report.rows
+    };
+    let images = image_layout::built_images(&args.images)?;
+    if images.is_empty() {
+        println!(
+            "\nfirmware images: none linked under {} (bash firmware/build.sh; bash firmware/qemu.sh cortex-m7|aarch64)",
+            args.images.display()
+        );
+    } else {
+        println!(
+            "\nfirmware images under {} (bytes):\n\n{}",
+            args.images.display(),
+            image_layout::markdown(&images)
+        );
+    }
     if let Some(path) = &args.json {
-        let json = serde_json::json!({ "rows": report.rows });
+        let json = serde_json::json!({ "rows": rows, "images": images });
         std::fs::write(path, serde_json::to_string_pretty(&json)? + "\n")
             .with_context(|| format!("writing {}", path.display()))?;
     }
-    let violations = budget_violations(&report.rows, args);
+    let violations = budget_violations(&rows, args);
     if !violations.is_empty() {
         for v in &violations {
             eprintln!("over budget: {v}");
