@@ -25,12 +25,17 @@ pub const MODEL_VERSION: u16 = 3;
 pub const MAP_MAGIC: [u8; 4] = *b"GMAP";
 /// Layout version of the map blob this build reads and writes (2: views carry names).
 pub const MAP_VERSION: u16 = 2;
+/// Magic of a view-features blob (`crate::view_features`).
+pub const VIEW_FEATURES_MAGIC: [u8; 4] = *b"GVFT";
+/// Format version of a view-features blob.
+pub const VIEW_FEATURES_VERSION: u16 = 1;
 
 /// Magic bytes of a kind of blob.
 pub const fn magic(kind: BlobKind) -> [u8; 4] {
     match kind {
         BlobKind::Model => MODEL_MAGIC,
         BlobKind::Map => MAP_MAGIC,
+        BlobKind::ViewFeatures => VIEW_FEATURES_MAGIC,
     }
 }
 
@@ -39,6 +44,7 @@ pub const fn version(kind: BlobKind) -> u16 {
     match kind {
         BlobKind::Model => MODEL_VERSION,
         BlobKind::Map => MAP_VERSION,
+        BlobKind::ViewFeatures => VIEW_FEATURES_VERSION,
     }
 }
 

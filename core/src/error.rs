@@ -38,6 +38,8 @@ pub enum BlobKind {
     Model,
     /// A map blob (`crate::map`).
     Map,
+    /// A view-features blob (`crate::view_features`).
+    ViewFeatures,
 }
 
 impl fmt::Display for BlobKind {
@@ -45,6 +47,7 @@ impl fmt::Display for BlobKind {
         f.write_str(match self {
             BlobKind::Model => "model",
             BlobKind::Map => "map",
+            BlobKind::ViewFeatures => "view-features",
         })
     }
 }
@@ -155,6 +158,16 @@ pub enum Error {
     /// A map payload that does not decode: bad encoding, record sizes, trailing bytes, a
     /// name outside the name list or not UTF-8.
     MapMalformed,
+    /// A view-features payload that does not decode (`crate::view_features`): dimension,
+    /// table or value ranges, a count above its capacity, a non-finite value, trailing
+    /// bytes.
+    ViewFeaturesMalformed,
+    /// View features that do not belong to the map: another view count, or more points
+    /// for a view than it observes.
+    ViewFeaturesMismatch {
+        /// The first view that does not match (the map's view count for a count mismatch).
+        view: usize,
+    },
     /// An index into a map (or a reference inside it) beyond the end of what it indexes.
     MapIndexOutOfRange {
         /// What the index refers to.
@@ -301,6 +314,11 @@ impl fmt::Display for Error {
                 "{blob} blob corrupted: checksum {computed:#010x}, stored {stored:#010x}"
             ),
             Error::MapMalformed => write!(f, "malformed map payload"),
+            Error::ViewFeaturesMalformed => write!(f, "malformed view-features payload"),
+            Error::ViewFeaturesMismatch { view } => write!(
+                f,
+                "view features do not belong to this map (view {view}): build them from this map"
+            ),
             Error::MapIndexOutOfRange { item, index, limit } => {
                 write!(f, "map {item:?} index {index} out of range ({limit} items)")
             }

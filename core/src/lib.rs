@@ -43,6 +43,7 @@ pub mod rng;
 pub mod sinkhorn;
 #[cfg(test)]
 mod test_scene;
+pub mod view_features;
 pub mod weights;
 
 pub use camera::Camera;

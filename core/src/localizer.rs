@@ -459,7 +459,19 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             log::debug!("map view {view}: {len} usable points ({refused} refused), skipped");
             return Ok(false);
         }
-        let set = self.matcher.match_view(model, db)?;
+        // Precomputed features of this view fit when they were computed with this model
+        // for the same points (the first `len` with a bearing: the same count).
+        let stored = map
+            .view_features()
+            .filter(|f| f.model_checksum() == model.checksum())
+            .and_then(|f| f.view(view))
+            .filter(|rows| {
+                rows.count == len && rows.dim == usize::from(model.config().feature_dim)
+            });
+        let set = match stored {
+            Some(rows) => self.matcher.match_view_features(model, db, rows)?,
+            None => self.matcher.match_view(model, db)?,
+        };
         counts.mutual += set.len();
         let mut accepted = 0;
         for m in set.inliers() {

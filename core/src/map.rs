@@ -34,6 +34,7 @@ use crate::camera::{Camera, CameraModel};
 use crate::envelope;
 use crate::error::{BlobKind, Error, Input, MapItem, Result};
 use crate::pose::Pose;
+use crate::view_features::ViewFeatures;
 
 pub use crate::envelope::{HEADER_BYTES, MAP_MAGIC, MAP_VERSION};
 /// Bytes per stored 3D point.
@@ -166,6 +167,7 @@ pub struct Map<'a> {
     views: &'a [u8],
     view_points: &'a [u8],
     names: &'a [u8],
+    features: Option<ViewFeatures<'a>>,
 }
 
 impl<'a> Map<'a> {
@@ -187,9 +189,37 @@ impl<'a> Map<'a> {
             views: decoded.views,
             view_points: decoded.view_points,
             names: decoded.names,
+            features: None,
         };
         map.validate()?;
         Ok(map)
+    }
+
+    /// The map with precomputed view features ([`crate::view_features`]), which the
+    /// localizer uses where they fit its model and capacity. [`Error::ViewFeaturesMismatch`]
+    /// when they hold another number of views, or more points for a view than it
+    /// observes.
+    pub fn with_view_features(self, features: ViewFeatures<'a>) -> Result<Self> {
+        if features.view_count() != self.view_count() {
+            return Err(Error::ViewFeaturesMismatch {
+                view: self.view_count(),
+            });
+        }
+        for view in 0..self.view_count() {
+            let observed = self.view(view)?.count as usize;
+            if features.view(view).is_none_or(|f| f.count > observed) {
+                return Err(Error::ViewFeaturesMismatch { view });
+            }
+        }
+        Ok(Map {
+            features: Some(features),
+            ..self
+        })
+    }
+
+    /// The precomputed view features, if the map has them.
+    pub fn view_features(&self) -> Option<&ViewFeatures<'a>> {
+        self.features.as_ref()
     }
 
     fn validate(&self) -> Result<()> {

@@ -35,6 +35,7 @@ use crate::limits::{MAX_FEATURE_DIM, MAX_KNN};
 use crate::sinkhorn::{
     cost_matrix, mutual_assignment, sinkhorn, Match, PlanScalar, SinkhornParams, Transport,
 };
+use crate::view_features::FeatureRows;
 use crate::weights::{Model, ModelConfig};
 
 pub use crate::limits::{MIN_KEYPOINTS, MIN_POINTS_NETWORK};
@@ -292,26 +293,61 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
         db: &[[f32; 2]],
         observer: &mut O,
     ) -> Result<&MatchSet<N>> {
-        let config = *model.config();
-        if !self.query_encoded || self.query_config != config {
-            return Err(Error::QueryNotEncoded);
+        self.match_view_from(model, db, None, observer)
+    }
+
+    /// [`Matcher::match_view`] with the view's precomputed features (what
+    /// [`Matcher::encode_view`] gives for `db`, e.g. from a map's
+    /// [`crate::view_features`]): the pair starts at the cross attention, with the same
+    /// result. [`Error::ViewFeaturesMismatch`] (view 0) when `features` do not have the
+    /// model's dimension and one column per point of `db`.
+    pub fn match_view_features(
+        &mut self,
+        model: &Model<'_>,
+        db: &[[f32; 2]],
+        features: FeatureRows<'_>,
+    ) -> Result<&MatchSet<N>> {
+        if features.dim != usize::from(model.config().feature_dim) || features.count != db.len() {
+            return Err(Error::ViewFeaturesMismatch { view: 0 });
         }
+        self.match_view_from(model, db, Some(features), &mut ())
+    }
+
+    /// What the matcher computes for a database view alone (`db`, bearing coordinates):
+    /// the encoder and the first self-attention layer, `d x n` values channel-major, the
+    /// input of [`Matcher::match_view_features`].
+    pub fn encode_view(&mut self, model: &Model<'_>, db: &[[f32; 2]]) -> Result<&[f32]> {
         self.check_points(db, Which::Points3d)?;
-        let (n2, n3) = (self.query_len, db.len());
-        let d = usize::from(config.feature_dim);
+        let d = usize::from(model.config().feature_dim);
+        self.view_side(model, db, None, &mut ());
+        let slot = MAX_FEATURE_DIM * N;
+        Ok(&self.features.as_flattened()[2 * slot..2 * slot + d * db.len()])
+    }
+
+    /// The view's side before it meets the query, into the view slot of the features and
+    /// `graph3d`: its neighbour graph, and its encoder and first self-attention layer, or
+    /// `features` in their place.
+    fn view_side<O: Observer<S>>(
+        &mut self,
+        model: &Model<'_>,
+        db: &[[f32; 2]],
+        features: Option<FeatureRows<'_>>,
+        observer: &mut O,
+    ) {
+        let config = model.config();
+        let (n3, d) = (db.len(), usize::from(config.feature_dim));
         let slot = MAX_FEATURE_DIM * N;
         let rows = self.rows.as_flattened_mut();
         let pool = self.pool.as_flattened_mut();
-        let (query, descriptors) = self.features.as_flattened_mut().split_at_mut(slot);
-        let (desc2d, desc3d) = descriptors.split_at_mut(slot);
-        let (desc2d, desc3d) = (&mut desc2d[..d * n2], &mut desc3d[..d * n3]);
-
+        let desc3d = &mut self.features.as_flattened_mut()[2 * slot..2 * slot + d * n3];
+        let k3 = neighbour_count(usize::from(config.knn), n3);
+        knn_graph(db, k3, &mut self.graph3d[..n3]);
+        if let Some(features) = features {
+            features.copy_to(desc3d);
+            return;
+        }
         encode(&model.encoder, db, desc3d, pool, rows);
         observer.features(Stage::Enc3d, desc3d, d, n3);
-        let k3 = neighbour_count(usize::from(config.knn), n3);
-        let k2 = neighbour_count(usize::from(config.knn), n2);
-        knn_graph(db, k3, &mut self.graph3d[..n3]);
-        let graph3d = &self.graph3d[..n3];
         let scratch = self_scratch(
             pool,
             rows,
@@ -320,8 +356,42 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
             d,
             n3,
         );
-        self_layer(&model.self_layers[0], graph3d, k3, desc3d, n3, scratch);
+        self_layer(
+            &model.self_layers[0],
+            &self.graph3d[..n3],
+            k3,
+            desc3d,
+            n3,
+            scratch,
+        );
         observer.features(Stage::Att0Self3d, desc3d, d, n3);
+    }
+
+    /// The pair from the view's side on ([`Matcher::view_side`]).
+    fn match_view_from<O: Observer<S>>(
+        &mut self,
+        model: &Model<'_>,
+        db: &[[f32; 2]],
+        features: Option<FeatureRows<'_>>,
+        observer: &mut O,
+    ) -> Result<&MatchSet<N>> {
+        let config = *model.config();
+        if !self.query_encoded || self.query_config != config {
+            return Err(Error::QueryNotEncoded);
+        }
+        self.check_points(db, Which::Points3d)?;
+        self.view_side(model, db, features, observer);
+        let (n2, n3) = (self.query_len, db.len());
+        let d = usize::from(config.feature_dim);
+        let slot = MAX_FEATURE_DIM * N;
+        let rows = self.rows.as_flattened_mut();
+        let pool = self.pool.as_flattened_mut();
+        let (query, descriptors) = self.features.as_flattened_mut().split_at_mut(slot);
+        let (desc2d, desc3d) = descriptors.split_at_mut(slot);
+        let (desc2d, desc3d) = (&mut desc2d[..d * n2], &mut desc3d[..d * n3]);
+        let k3 = neighbour_count(usize::from(config.knn), n3);
+        let k2 = neighbour_count(usize::from(config.knn), n2);
+        let graph3d = &self.graph3d[..n3];
         desc2d.copy_from_slice(&query[..d * n2]);
 
         let heads = usize::from(config.heads);
@@ -497,6 +567,36 @@ mod tests {
         exact(Matcher::<1024, f32>::BYTES, 1024, 4);
         const { assert!(Matcher::<256, half::f16>::BYTES <= 1 << 20) };
         const { assert!(Matcher::<1024, half::f16>::BYTES <= 5_500_000) };
+    }
+
+    #[test]
+    fn precomputed_view_features_give_the_same_matches() {
+        use crate::view_features::{blob_len, write_blob, ViewFeatures};
+        with_model(|model| {
+            let (q, db) = (points(40, 1), points(50, 2));
+            let mut m = WORKSPACE.lock().expect("lock");
+            let want = m
+                .match_pair(model, &q, &db)
+                .expect("runs")
+                .as_slice()
+                .to_vec();
+            let encoded = m.encode_view(model, &db).expect("encodes").to_vec();
+            let d = usize::from(model.config().feature_dim);
+            assert_eq!(encoded.len(), d * db.len());
+            let mut blob = std::vec![0u8; blob_len(d, &[db.len()])];
+            let len = write_blob(model.checksum(), d, 64, &[&encoded], &mut blob).expect("fits");
+            assert_eq!(len, blob.len());
+            let features = ViewFeatures::from_bytes(&blob).expect("valid");
+            let rows = features.view(0).expect("one view");
+            m.encode_query(model, &q).expect("encodes");
+            let got = m.match_view_features(model, &db, rows).expect("runs");
+            assert_eq!(got.as_slice(), &want[..]);
+            assert_eq!(
+                m.match_view_features(model, &db[..49], rows)
+                    .map(|s| s.len()),
+                Err(Error::ViewFeaturesMismatch { view: 0 })
+            );
+        });
     }
 
     #[test]

@@ -750,6 +750,7 @@ impl ClassifierWeights<'_> {
 pub struct Model<'a> {
     config: ModelConfig,
     precision: Precision,
+    checksum: u32,
     /// Point encoder shared by 2D and 3D.
     pub encoder: EncoderWeights<'a>,
     /// The two self-attention layers (attention layers 0 and 2).
@@ -781,6 +782,7 @@ impl<'a> Model<'a> {
         let mut model = Model {
             config: header.config,
             precision: header.precision,
+            checksum: envelope::crc32(payload),
             encoder: EncoderWeights {
                 input: Linear::EMPTY,
                 blocks: [ResidualBlockWeights::EMPTY; MAX_ENCODER_BLOCKS],
@@ -839,6 +841,12 @@ impl<'a> Model<'a> {
     /// Nominal weight precision (each tensor has its own, see [`Linear::precision`]).
     pub fn precision(&self) -> Precision {
         self.precision
+    }
+
+    /// The CRC-32 of the blob's payload: which model this is, for data computed with it
+    /// ([`crate::view_features`]).
+    pub fn checksum(&self) -> u32 {
+        self.checksum
     }
 
     /// Puts tensor `index` (blob order, [`locate`]) in its slot.

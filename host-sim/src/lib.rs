@@ -23,6 +23,7 @@ pub mod scene;
 pub mod scenes_stats;
 pub mod synthetic;
 pub mod tiny;
+pub mod view_features;
 
 pub mod pnp;
 

@@ -41,6 +41,10 @@ pub struct Args {
     /// the executable's).
     #[arg(long)]
     pub model: Option<PathBuf>,
+    /// The map's view-features blob (`map features`, for this model): the views' encoder
+    /// and first self-attention layer are read instead of computed, with the same results.
+    #[arg(long)]
+    pub view_features: Option<PathBuf>,
     /// The queries.
     #[command(flatten)]
     pub queries: QueryArgs,
@@ -520,7 +524,14 @@ fn localize_all(session: Session<'_>, queries: &[QuerySpec]) -> anyhow::Result<V
 /// Runs `gomatch-sim localize` and returns its report.
 pub fn run(args: &Args) -> anyhow::Result<LocalizeReport> {
     let map_blob = gomatch_tools::files::read_map_blob(&args.map)?;
-    let map = Map::from_bytes(&map_blob)?;
+    let features_blob = match &args.view_features {
+        Some(path) => std::fs::read(path).with_context(|| format!("reading {}", path.display()))?,
+        None => Vec::new(),
+    };
+    let mut map = Map::from_bytes(&map_blob)?;
+    if args.view_features.is_some() {
+        map = gomatch_tools::view_features::attach(map, &features_blob)?;
+    }
     let model_path = args
         .model
         .clone()

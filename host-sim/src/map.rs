@@ -40,10 +40,14 @@ pub enum MapCommand {
     /// Print the storage breakdown of a map blob.
     Stats(StatsArgs),
     /// Print each view of a map blob: view index, image id, name, camera and point count.
-    List(StatsArgs),
+    List(ListArgs),
     /// Print the triangulated share per block of each image's stored keypoints: the
     /// evidence for the rank `build` stores view points in.
     Rank(RankArgs),
+    /// Precompute each view's features for one model and capacity (a blob beside the
+    /// map, given to `localize --view-features`): the localizer skips the view's encoder
+    /// and first self-attention layer, with the same results.
+    Features(crate::view_features::FeaturesArgs),
 }
 
 /// Arguments of `map build`.
@@ -64,6 +68,16 @@ pub struct BuildArgs {
 #[derive(Debug, Clone, ClapArgs)]
 pub struct StatsArgs {
     /// Map blob to inspect.
+    pub map: PathBuf,
+    /// Its view-features blob (`map features`), to count its flash too.
+    #[arg(long)]
+    pub view_features: Option<PathBuf>,
+}
+
+/// Arguments of `map list`.
+#[derive(Debug, Clone, ClapArgs)]
+pub struct ListArgs {
+    /// Map blob to list.
     pub map: PathBuf,
 }
 
@@ -372,7 +386,28 @@ fn print_views(map: &Map<'_>) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Runs `map build`, `map stats`, `map list` or `map rank`.
+/// Prints the size of the view-features blob at `path` beside the map's `map_bytes`.
+fn print_view_features(
+    map: Map<'_>,
+    path: &std::path::Path,
+    map_bytes: usize,
+) -> anyhow::Result<()> {
+    let blob = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    gomatch_tools::view_features::attach(map, &blob)?;
+    let features = gomatch::view_features::ViewFeatures::from_bytes(&blob)?;
+    println!(
+        "view features ({}): {} ({:.1}x the map) for N = {}, d = {}, model CRC-32 {:08x}",
+        path.display(),
+        human(blob.len()),
+        blob.len() as f64 / map_bytes.max(1) as f64,
+        features.capacity(),
+        features.dim(),
+        features.model_checksum()
+    );
+    Ok(())
+}
+
+/// Runs `map build`, `map stats`, `map list`, `map rank` or `map features`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
     match &args.command {
         MapCommand::Build(build) => {
@@ -397,12 +432,16 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             let blob = gomatch_tools::files::read_map_blob(&stats.map)?;
             let map = Map::from_bytes(&blob)?;
             print_stats(&StorageBreakdown::of(&map, blob.len()));
+            if let Some(path) = &stats.view_features {
+                print_view_features(map, path, blob.len())?;
+            }
         }
         MapCommand::List(list) => {
             let blob = gomatch_tools::files::read_map_blob(&list.map)?;
             print_views(&Map::from_bytes(&blob)?)?;
         }
         MapCommand::Rank(rank) => print_rank(&rank.source.source()?.load_as_stored()?, rank.block),
+        MapCommand::Features(features) => crate::view_features::run(features)?,
     }
     Ok(())
 }

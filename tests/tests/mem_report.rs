@@ -5,6 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use gomatch::link::{rx_frame_len, Device};
+use gomatch::view_features::blob_len;
 use gomatch::weights::Precision;
 use gomatch::Localizer;
 use gomatch_tools::convert::PrecisionArg;
@@ -12,6 +13,7 @@ use gomatch_tools::mem_report::{
     budget_violations, human_bytes, markdown, measure, report, Args, CountingAllocator, Row,
     Sinkhorn, BUILTIN_MAP,
 };
+use gomatch_tools::view_features::view_bearings;
 use half::f16;
 
 #[global_allocator]
@@ -128,6 +130,20 @@ fn rows_agree_with_the_types_and_the_blobs() {
         assert_eq!((row.ram_bytes, row.link_bytes), (ram, link));
         assert_eq!(row.flash_model_bytes, int8.len());
         assert_eq!(row.flash_map_bytes, map.len());
+        // Each view's first N points with a bearing (or none below the matcher's minimum),
+        // d = 128 f32 values each, and the blob's header and table.
+        let parsed = gomatch::Map::from_bytes(&map).expect("map");
+        let counts: Vec<usize> = (0..parsed.view_count())
+            .map(|v| view_bearings(&parsed, v, n).expect("view").len())
+            .map(|c| {
+                if c < gomatch::matcher::MIN_KEYPOINTS {
+                    0
+                } else {
+                    c
+                }
+            })
+            .collect();
+        assert_eq!(row.flash_view_features_bytes, blob_len(128, &counts));
         assert_eq!(row.heap_bytes, 0);
         assert!(
             row.stack_bytes > 4096 && row.stack_bytes < 64 * 1024,
@@ -148,6 +164,7 @@ fn rows_agree_with_the_types_and_the_blobs() {
         "heap_bytes",
         "flash_model_bytes",
         "flash_map_bytes",
+        "flash_view_features_bytes",
     ] {
         assert!(json.get(key).is_some(), "{key} missing");
     }
@@ -203,13 +220,14 @@ fn sizes_print_in_binary_units() {
         heap_bytes: 0,
         flash_model_bytes: 1_178_845,
         flash_map_bytes: 33_167,
+        flash_view_features_bytes: 800_000,
         link_bytes: 20_000,
         keypoints: 1024,
         views_used: 10,
     };
     let table = markdown(&[row]);
     assert!(
-        table.contains("| 1024 | 10 | int8 | f16 | 4.77 MiB | 11.7 KiB | 0 B | 1.12 MiB | 32.4 KiB | 19.5 KiB |"),
+        table.contains("| 1024 | 10 | int8 | f16 | 4.77 MiB | 11.7 KiB | 0 B | 1.12 MiB | 32.4 KiB | 781.2 KiB | 19.5 KiB |"),
         "{table}"
     );
 }
@@ -226,6 +244,7 @@ fn budgets_name_the_rows_over_them() {
         heap_bytes: 0,
         flash_model_bytes: 1_178_845,
         flash_map_bytes: 33_167,
+        flash_view_features_bytes: 800_000,
         link_bytes: 0,
         keypoints: capacity,
         views_used: 10,

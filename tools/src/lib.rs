@@ -9,3 +9,4 @@ pub mod image_layout;
 pub mod mem_report;
 pub mod quantize;
 pub mod sensitivity;
+pub mod view_features;

@@ -42,6 +42,7 @@ use serde::Serialize;
 use crate::convert::{convert, PrecisionArg};
 use crate::files::{find_default, read_map_blob, read_model_blob};
 use crate::image_layout;
+use crate::view_features::build_view_features;
 
 /// Capacities reported by default.
 pub const CAPACITIES: [usize; 4] = [128, 256, 512, 1024];
@@ -144,6 +145,10 @@ pub struct Row {
     pub flash_model_bytes: usize,
     /// Map blob.
     pub flash_map_bytes: usize,
+    /// The map option of precomputed view features for this model and capacity
+    /// (`gomatch-sim map features`; not in the flash budget, which counts what the localizer
+    /// needs).
+    pub flash_view_features_bytes: usize,
     /// Device link buffers, `Device::<N, rx_frame_len(N)>::BYTES`.
     pub link_bytes: usize,
     /// Keypoints of the measured query.
@@ -574,6 +579,7 @@ pub fn report(args: &Args) -> Result<Report> {
             for (precision, blob) in &blobs {
                 let model =
                     Model::from_bytes(blob).map_err(|e| anyhow::anyhow!("model blob: {e}"))?;
+                let view_features = build_view_features(&model, &map, capacity)?.len();
                 for &sinkhorn in &storages {
                     progress.set_message(format!(
                         "N={capacity} k={k} {} weights, {} Sinkhorn",
@@ -592,6 +598,7 @@ pub fn report(args: &Args) -> Result<Report> {
                         heap_bytes: usage.heap_bytes,
                         flash_model_bytes: blob.len(),
                         flash_map_bytes: map_bytes.len(),
+                        flash_view_features_bytes: view_features,
                         link_bytes: link,
                         keypoints: query.pixels.len(),
                         views_used: localization.views_used,
@@ -654,7 +661,7 @@ pub fn human_bytes(bytes: u64) -> String {
 /// The rows as a markdown table, sizes in B / KiB / MiB.
 pub fn markdown(rows: &[Row]) -> String {
     let mut out = String::from(
-        "| N | k | weights | Sinkhorn | RAM | stack | heap | flash model | flash map | link buffers |\n|---|---|---|---|---|---|---|---|---|---|\n",
+        "| N | k | weights | Sinkhorn | RAM | stack | heap | flash model | flash map | flash view features (option) | link buffers |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in rows {
         let sizes = [
@@ -663,6 +670,7 @@ pub fn markdown(rows: &[Row]) -> String {
             r.heap_bytes,
             r.flash_model_bytes as u64,
             r.flash_map_bytes as u64,
+            r.flash_view_features_bytes as u64,
             r.link_bytes as u64,
         ]
         .map(human_bytes)
