@@ -4,7 +4,8 @@
 #
 #   tools/callgrind.sh [OUT_DIR [RUN...]]   (default target/callgrind, every run)
 #
-# RUN: match-N-PRECISION (N 256 or 1024, PRECISION int8 or f32) or localize-1024-int8.
+# RUN: match-N-PRECISION (N 256 or 1024, PRECISION int8 or f32), localize-1024-int8 or
+# localize-1024-int8-features (the same localization with the map's view features).
 # Runs `cargo run --example workload` under callgrind for one match at N = 256 and 1024
 # (reference fixture weights; int8 weights with an f16 cost, and f32 weights with an f32
 # cost) and one full k = 10 localization of a colmap/mouse query at N = 1024 (shipped int8
@@ -18,7 +19,7 @@ out=${1:-target/callgrind}
 shift || true
 runs=("$@")
 if [ ${#runs[@]} -eq 0 ]; then
-  runs=(match-256-int8 match-256-f32 match-1024-int8 match-1024-f32 localize-1024-int8)
+  runs=(match-256-int8 match-256-f32 match-1024-int8 match-1024-f32 localize-1024-int8 localize-1024-int8-features)
 fi
 mkdir -p "$out"
 bin=${WORKLOAD:-target/release/examples/workload}
@@ -71,6 +72,7 @@ for run in "${runs[@]}"; do
     count "$run" '*workload::run_match' match "$n" "$precision"
     ;;
   localize-1024-int8) count "$run" '*Localizer*::localize' localize ;;
+  localize-1024-int8-features) count "$run" '*Localizer*::localize' localize features ;;
   *) echo "unknown run $run" >&2 && exit 2 ;;
   esac
 done

@@ -59,6 +59,9 @@ const MAX_CENTER_ERROR: f64 = 0.05;
 static MODEL: &[u8] = include_bytes!(env!("GOMATCH_FIRMWARE_MODEL"));
 /// Map of the query's co-visible views (`gomatch-sim firmware-data`).
 static MAP: &[u8] = include_bytes!("../data/map.bin");
+/// The map's precomputed view features, when the build was given them
+/// (`GOMATCH_FIRMWARE_VIEW_FEATURES`, see `build.rs`); empty otherwise.
+static VIEW_FEATURES: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/view_features.bin"));
 /// The query as one COBS-framed link request.
 static QUERY: &[u8] = include_bytes!("../data/query.frame");
 /// True pose (row-major rotation, translation) and scene scale, 13 little-endian `f64`.
@@ -85,7 +88,7 @@ pub mod exit_code {
     pub const REFUSED: i32 = 4;
     /// The model blob does not validate.
     pub const MODEL_INVALID: i32 = 10;
-    /// The map blob does not validate.
+    /// The map blob, or the view features given with it, do not validate.
     pub const MAP_INVALID: i32 = 11;
     /// The embedded query frame or truth could not be read.
     pub const DATA_INVALID: i32 = 12;
@@ -218,9 +221,14 @@ fn serve(
     if Map::from_bytes(MAP).is_err() {
         return Err(exit_code::MAP_INVALID);
     }
-    let Ok(service) = Service::new(localizer, MODEL, MAP, NoPin) else {
+    let Ok(mut service) = Service::new(localizer, MODEL, MAP, NoPin) else {
         return Err(exit_code::MODEL_INVALID);
     };
+    if !VIEW_FEATURES.is_empty() {
+        service = service
+            .with_view_features(VIEW_FEATURES)
+            .map_err(|_| exit_code::MAP_INVALID)?;
+    }
     let mut service = match clock {
         Some(clock) => service.with_clock(clock),
         None => service,

@@ -1,14 +1,16 @@
 //! Criterion benchmark of one full localization (paper sec. 4.1): a `colmap/mouse` query
 //! (protocol seed 0, keypoints capped at N = 1024) against its k = 10 co-visible views
 //! with the shipped int8 model and an f16 Sinkhorn cost (the device configuration), one
-//! thread: encode the query once, match every view, merge, RANSAC-PnP. Run:
+//! thread: encode the query once, match every view, merge, RANSAC-PnP; and the same with
+//! the map's precomputed view features (`gomatch-sim map features`). Run:
 //! `cargo bench -p gomatch-sim --bench localize`.
 
 use std::sync::Mutex;
 use std::time::Duration;
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use gomatch::{Localizer, Model};
+use gomatch::{Localizer, Map, Model};
+use gomatch_tools::view_features::{attach, build_view_features};
 use half::f16;
 
 mod workload;
@@ -25,8 +27,11 @@ fn bench(c: &mut Criterion) {
         return;
     };
     let model = Model::from_bytes(&blob).expect("shipped model reads");
+    let map = Map::from_bytes(&problem.map).expect("map reads back");
+    let features = build_view_features(&model, &map, workload::CAPACITY).expect("features");
+    let with_features = attach(map, &features).expect("features fit the map");
     let mut localizer = LOCALIZER.lock().expect("lock");
-    let first = workload::localize(&mut localizer, &model, &problem);
+    let first = workload::localize(&mut localizer, &model, &map, &problem);
     println!(
         "mouse query: {} keypoints, {} views used, {} merged correspondences, pose found: {}",
         problem.pixels.len(),
@@ -40,7 +45,10 @@ fn bench(c: &mut Criterion) {
         .warm_up_time(Duration::from_secs(1))
         .measurement_time(Duration::from_secs(20));
     group.bench_function("mouse_k10_n1024_int8_f16", |b| {
-        b.iter(|| workload::localize(&mut localizer, &model, &problem).views_used)
+        b.iter(|| workload::localize(&mut localizer, &model, &map, &problem).views_used)
+    });
+    group.bench_function("mouse_k10_n1024_int8_f16_view_features", |b| {
+        b.iter(|| workload::localize(&mut localizer, &model, &with_features, &problem).views_used)
     });
     group.finish();
 }

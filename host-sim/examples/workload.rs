@@ -2,7 +2,8 @@
 //! runs the matcher once on a query-view pair of N points (reference fixture weights,
 //! f16 Sinkhorn cost for int8 and f16, f32 otherwise); `localize` runs one full k = 10
 //! localization of a `colmap/mouse` query at N = 1024 with the shipped int8 model and an
-//! f16 cost (the device configuration). Preparation (conversion, map build) is outside
+//! f16 cost (the device configuration); `localize features` the same with the map's
+//! precomputed view features. Preparation (conversion, map and features build) is outside
 //! the functions callgrind is told to count.
 //!
 //! `time N PRECISION RUNS` times the same match (`tools/bench_reference.sh` runs it beside
@@ -12,9 +13,10 @@
 use std::sync::Mutex;
 use std::time::Instant;
 
-use gomatch::{Localizer, Matcher, Model, Precision};
+use gomatch::{Localizer, Map, Matcher, Model, Precision};
 use gomatch_tools::convert::{convert_with, Options};
 use gomatch_tools::quantize::Rounding;
+use gomatch_tools::view_features::{attach, build_view_features};
 use half::f16;
 
 #[path = "../benches/workload/mod.rs"]
@@ -35,9 +37,10 @@ fn main() -> anyhow::Result<()> {
         ["time", n, precision, runs] => {
             time_matches(n.parse()?, parse_precision(precision)?, runs.parse()?)
         }
-        ["localize"] => localize_once(),
+        ["localize"] => localize_once(false),
+        ["localize", "features"] => localize_once(true),
         _ => anyhow::bail!(
-            "usage: workload match N f32|f16|int8 | workload time N f32|f16|int8 RUNS | workload localize"
+            "usage: workload match N f32|f16|int8 | workload time N f32|f16|int8 RUNS | workload localize [features]"
         ),
     }
 }
@@ -117,13 +120,26 @@ fn time_matches(n: usize, precision: Precision, runs: usize) -> anyhow::Result<(
     Ok(())
 }
 
-fn localize_once() -> anyhow::Result<()> {
+/// One full localization; with `features`, on the map with its precomputed view features
+/// (built first, outside the counted call).
+fn localize_once(features: bool) -> anyhow::Result<()> {
     let blob = std::fs::read(workload::repo("models/gomatch-int8.bin"))?;
     let model = Model::from_bytes(&blob)?;
     let problem = workload::mouse_query()
         .ok_or_else(|| anyhow::anyhow!("colmap/mouse is absent under ../shared/data"))?;
+    let map = Map::from_bytes(&problem.map)?;
+    let features_blob = if features {
+        build_view_features(&model, &map, CAPACITY)?
+    } else {
+        Vec::new()
+    };
+    let map = if features {
+        attach(map, &features_blob)?
+    } else {
+        map
+    };
     let mut localizer = LOCALIZER.lock().expect("lock");
-    let result = workload::localize(&mut localizer, &model, &problem);
+    let result = workload::localize(&mut localizer, &model, &map, &problem);
     println!(
         "localize: {} keypoints, {} views used, {} merged, outcome {:?}",
         problem.pixels.len(),

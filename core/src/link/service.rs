@@ -71,6 +71,14 @@ impl<'a, const N: usize, S: PlanScalar, P: OutputPin> Service<'a, N, S, P> {
         })
     }
 
+    /// The service with the map's precomputed view features ([`crate::view_features`]),
+    /// checked against the map ([`Map::with_view_features`]).
+    pub fn with_view_features(mut self, blob: &'a [u8]) -> crate::error::Result<Self> {
+        let features = crate::view_features::ViewFeatures::from_bytes(blob)?;
+        self.map = self.map.with_view_features(features)?;
+        Ok(self)
+    }
+
     /// Stage timings from this clock go into every [`LocalizeReply`].
     pub fn with_clock(mut self, clock: &'a dyn Clock) -> Self {
         self.clock = Some(clock);

@@ -85,13 +85,14 @@ pub fn mouse_query() -> Option<Problem> {
     })
 }
 
-/// Runs the full localization (encode once, match each view, merge, RANSAC-PnP).
+/// Runs the full localization (encode once, match each view, merge, RANSAC-PnP) on `map`
+/// (the problem's, read with or without view features).
 pub fn localize(
     localizer: &mut Localizer<CAPACITY, f16>,
     model: &Model<'_>,
+    map: &Map<'_>,
     problem: &Problem,
 ) -> Localization {
-    let map = Map::from_bytes(&problem.map).expect("map reads back");
     let query = Query {
         keypoints: &problem.pixels,
         camera: problem.camera,
@@ -99,7 +100,7 @@ pub fn localize(
     localizer
         .localize(
             model,
-            &map,
+            map,
             &query,
             ViewSelection::ImageIds(&problem.views),
             &LocalizerConfig::default(),
