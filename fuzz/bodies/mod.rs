@@ -13,6 +13,7 @@ use gomatch::link::{
     self, decode_frame, encode_frame, Device, LocalizeRequest, NoPin, Request, RequestBody,
     Response, Service, Views,
 };
+use gomatch::view_features::ViewFeatures;
 use gomatch::weights::ModelConfig;
 use gomatch::{Camera, Localizer, LocalizerConfig, Map, Model, Pose, Query, ViewSelection};
 use gomatch_sim::scene::Scene;
@@ -41,9 +42,10 @@ const PROBE_IDS: [u32; 3] = [0xF00D_0001, 0xF00D_0002, 0xF00D_0003];
 pub type Body = fn(&[u8]);
 
 /// Every target: its name (a folder under `fuzz/seeds/` and `fuzz/regressions/`) and body.
-pub const TARGETS: [(&str, Body); 8] = [
+pub const TARGETS: [(&str, Body); 9] = [
     ("model_blob", model_blob),
     ("map_blob", map_blob),
+    ("view_features", view_features),
     ("device_link", device_link),
     ("colmap_bin", colmap_bin),
     ("colmap_txt", colmap_txt),
@@ -279,6 +281,26 @@ pub fn map_blob(data: &[u8]) {
     let fixture = fixture();
     let model = Model::from_bytes(&fixture.model).expect("tiny model");
     forward(&model, &map, fixture.camera, &fixture.pixels);
+}
+
+/// The view-features blob, its envelope repaired as the first byte asks
+/// ([`repair_envelope`]); when it decodes, it is attached to the fixture's map and every
+/// view's features are read (and one view past the end).
+pub fn view_features(data: &[u8]) {
+    let Some(blob) = repaired(BlobKind::ViewFeatures, data) else {
+        return;
+    };
+    let Ok(features) = ViewFeatures::from_bytes(&blob) else {
+        return;
+    };
+    let mut values = vec![0.0f32; 128 * CAPACITY];
+    for view in 0..=features.view_count() {
+        if let Some(rows) = features.view(view) {
+            rows.copy_to(&mut values);
+        }
+    }
+    let map = Map::from_bytes(&fixture().map).expect("tiny map");
+    let _ = map.with_view_features(features);
 }
 
 /// Every accessor of `map` on every index (and one past the end).

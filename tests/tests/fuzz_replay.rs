@@ -11,8 +11,10 @@ mod bodies;
 use std::path::{Path, PathBuf};
 
 use gomatch::link::{self, encode_frame, Request, RequestBody};
+use gomatch::{Map, Model};
 use gomatch_sim::scene::Scene;
 use gomatch_sim::tiny::{tiny_query, tiny_scene, tiny_scene_txt};
+use gomatch_tools::view_features::build_view_features;
 use nalgebra::UnitQuaternion;
 
 /// Largest seed file.
@@ -211,6 +213,12 @@ fn request_frame(id: u32, body: RequestBody<'_>) -> Vec<u8> {
 fn seeds() -> Vec<(&'static str, &'static str, Vec<u8>)> {
     let fixture = bodies::fixture();
     let (model, map) = (&fixture.model, &fixture.map);
+    let features = build_view_features(
+        &Model::from_bytes(model).expect("model"),
+        &Map::from_bytes(map).expect("map"),
+        bodies::CAPACITY,
+    )
+    .expect("features");
     let scene = tiny_scene(bodies::FIXTURE_POINTS).expect("scene");
     let [cameras_txt, images_txt, points_txt] = tiny_scene_txt(bodies::FIXTURE_POINTS);
     let [cameras_bin, images_bin, points_bin] = colmap_bin(&scene);
@@ -232,6 +240,12 @@ fn seeds() -> Vec<(&'static str, &'static str, Vec<u8>)> {
         ("map_blob", "tiny", with_mode(0, map)),
         ("map_blob", "tiny-fixed-header", with_mode(7, map)),
         ("map_blob", "tiny-cut", with_mode(6, &map[..map.len() / 2])),
+        ("view_features", "tiny", with_mode(0, &features)),
+        (
+            "view_features",
+            "tiny-fixed-header",
+            with_mode(7, &features),
+        ),
         ("device_link", "no-noise", Vec::new()),
         ("device_link", "info-frame", info.clone()),
         ("device_link", "cut-frame", cut),
