@@ -3,7 +3,8 @@
 # fuzz/corpus/<target> (ignored by git, cargo-fuzz's place for it) and appends one line per run
 # to fuzz/ledger.tsv: date, commit, target, seconds, executions, peak RSS (MB) and "ok" (a
 # failing run stops the campaign and is not recorded; its input is in
-# fuzz/target/artifacts/<target>/). `fuzz/campaign.sh --totals` sums the ledger per target.
+# fuzz/target/artifacts/<target>/). `fuzz/campaign.sh --totals` sums the ledger per target (a
+# markdown table).
 #
 #   bash fuzz/campaign.sh 600 device_link localize
 set -euo pipefail
@@ -11,9 +12,10 @@ cd "$(dirname "$0")"
 source ./common.sh
 ledger=ledger.tsv
 if [ "${1:-}" = --totals ]; then
+  echo "| target | runs | seconds | executions |"
+  echo "|---|---|---|---|"
   awk -F'\t' 'NR > 1 { runs[$3]++; execs[$3] += $5; secs[$3] += $4 }
-    END { printf "%-12s %5s %8s %14s\n", "target", "runs", "seconds", "executions";
-          for (t in execs) printf "%-12s %5d %8d %14d\n", t, runs[t], secs[t], execs[t] }' "$ledger" | sort
+    END { for (t in execs) printf "| `%s` | %d | %d | %d |\n", t, runs[t], secs[t], execs[t] }' "$ledger" | sort
   exit 0
 fi
 seconds=${1:?usage: fuzz/campaign.sh SECONDS [TARGET...] | --totals}
