@@ -174,6 +174,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         protocol: args.synthetic.protocol(CAPACITY),
         localizer: LocalizerConfig::new(),
         threads: 1,
+        view_features: false,
     };
     let report = evaluate(&scene, matching, &options, false)?;
     for q in &report.per_query {

@@ -37,6 +37,7 @@ use crate::protocol::{
     QuerySample,
 };
 use crate::scene::{ImageId, PointId, Scene};
+use gomatch_tools::view_features::{attach, build_view_features};
 
 /// Thread stack for the localizer workers: the workspace lives on it (about 7.7 MiB with
 /// an f32 cost, twice that in unoptimised builds).
@@ -99,6 +100,10 @@ pub struct Args {
     /// `gomatch-sim fit-acceptance` (`bias`, `weights`, `min_confidence`).
     #[arg(long)]
     pub acceptance: Option<PathBuf>,
+    /// Precompute the map's view features for the model and capacity first (the map
+    /// option of `map features`; built before the timed queries, same results).
+    #[arg(long)]
+    pub view_features: bool,
 }
 
 /// Storage type of the Sinkhorn cost matrix.
@@ -325,6 +330,9 @@ pub struct Report {
     /// Localizer capacity (keypoints per query, points per view).
     #[serde(default = "default_capacity")]
     pub capacity: usize,
+    /// Whether the map's precomputed view features were used.
+    #[serde(default)]
+    pub view_features: bool,
     /// Protocol seed.
     pub seed: u64,
     /// Cap on RANSAC's minimal samples per query.
@@ -400,6 +408,8 @@ pub struct EvalOptions {
     pub localizer: LocalizerConfig,
     /// Worker threads.
     pub threads: usize,
+    /// Localize on the map with its precomputed view features (the model's).
+    pub view_features: bool,
 }
 
 /// The oracle's input: every ground-truth pair of every view, each keypoint once (its
@@ -771,7 +781,16 @@ pub fn evaluate(
 ) -> anyhow::Result<Report> {
     let samples = protocol_samples(scene, &options.protocol);
     let blob = build_map(scene)?;
-    let map = Map::from_bytes(&blob).context("reading back the map")?;
+    let mut map = Map::from_bytes(&blob).context("reading back the map")?;
+    let features = match matching {
+        Matching::Model { model, .. } if options.view_features => {
+            build_view_features(model, &map, options.protocol.max_points)?
+        }
+        _ => Vec::new(),
+    };
+    if !features.is_empty() {
+        map = attach(map, &features)?;
+    }
     let point_index = map_point_index(scene)?;
     let progress = if show_progress {
         ProgressBar::new(samples.len() as u64).with_style(
@@ -837,6 +856,7 @@ pub fn evaluate(
         precision_sinkhorn: precision,
         k: options.protocol.k,
         capacity: options.protocol.max_keypoints,
+        view_features: !features.is_empty(),
         seed: options.protocol.seed,
         ransac_max_iterations: options.localizer.ransac.max_iterations,
         queries: n,
@@ -1057,6 +1077,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             ..LocalizerConfig::new()
         },
         threads: args.threads,
+        view_features: args.view_features,
     };
     let model_path = args.model.clone().unwrap_or_else(default_model_path);
     let blob;

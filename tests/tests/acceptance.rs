@@ -97,6 +97,7 @@ fn report_with(examples: &[Example]) -> Report {
         protocol: ProtocolParams::for_localizer(10, examples.len(), 0, CAPACITY),
         localizer: gomatch::LocalizerConfig::new(),
         threads: 1,
+        view_features: false,
     };
     let mut report = evaluate(&scene, Matching::Oracle, &options, false).unwrap();
     assert_eq!(report.per_query.len(), examples.len());

@@ -28,6 +28,7 @@ fn options(k: usize, queries: usize, threads: usize) -> EvalOptions {
         protocol: ProtocolParams::for_localizer(k, queries, 0, CAPACITY),
         localizer: LocalizerConfig::new(),
         threads,
+        view_features: false,
     }
 }
 
@@ -401,4 +402,38 @@ fn a_small_capacity_caps_the_keypoints_and_runs_the_small_localizer() {
         ..options(3, 4, 1)
     };
     assert!(evaluate(&scene, matching, &unknown, false).is_err());
+}
+
+/// `--view-features`: the map's precomputed view features give the same poses, errors and
+/// counts as computing the views, and the report says they were used.
+#[test]
+fn view_features_give_the_same_evaluation() {
+    let Some(matching) = shipped_int8_matching() else {
+        return;
+    };
+    let scene = synthetic_scene(1, 0);
+    let plain = evaluate(&scene, matching, &options(3, 4, 1), false).unwrap();
+    let with = EvalOptions {
+        view_features: true,
+        ..options(3, 4, 1)
+    };
+    let report = evaluate(&scene, matching, &with, false).unwrap();
+    assert!(report.view_features && !plain.view_features);
+    let outcome = |r: &Report| {
+        r.per_query
+            .iter()
+            .map(|q| {
+                (
+                    q.reprojection_px.map(f64::to_bits),
+                    q.failure.clone(),
+                    q.counts,
+                )
+            })
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(outcome(&report), outcome(&plain));
+    assert_eq!(
+        (report.auc_1px, report.auc_10px),
+        (plain.auc_1px, plain.auc_10px)
+    );
 }

@@ -35,6 +35,7 @@ fn options() -> EvalOptions {
         protocol: ProtocolParams::for_localizer(10, 40, 0, CAPACITY),
         localizer: LocalizerConfig::new(),
         threads: 1,
+        view_features: false,
     }
 }
 
