@@ -12,8 +12,9 @@
 //! Work is done once per query where it can be: [`Matcher::encode_query`] runs everything
 //! that depends on the query alone (its encoder output, its k-NN graph and the first
 //! self-attention layer, which does not yet see the view), and [`Matcher::match_view`]
-//! runs, per view, the view's encoder, graph and first self-attention layer, then per
-//! pair the cross attention, the second self attention, the cost, Sinkhorn, the mutual
+//! runs, per view, the view's encoder, graph and first self-attention layer (or takes
+//! them precomputed, [`Matcher::match_view_features`] with [`crate::view_features`]), then
+//! per pair the cross attention, the second self attention, the cost, Sinkhorn, the mutual
 //! assignment and the classifier.
 
 use crate::attention::{
