@@ -3,9 +3,10 @@
 //! kernel's `mul_add_lanes` (NEON `fmla` on AArch64) must give the same bits as libm's exact
 //! `fmaf` over many random triples, or the image's numbers would not be the host's; and the
 //! int8 kernel's register block of this instruction set (`smlad`, NEON, AVX2 through
-//! `pair_sums`) must give the portable block's exact sums.
+//! `pair_sums`) must give the portable block's exact sums, and its f16 widening the software
+//! conversion's.
 
-use gomatch::nn::dispatch::{Fma, Portable};
+use gomatch::nn::dispatch::{f16_to_f32, Fma, Portable};
 use gomatch::nn::fma::mul_add;
 use gomatch::nn::integer::{block_sums, TilePairs, WeightPairs, POINTS, TILE};
 use gomatch::nn::COL_BLOCK;
@@ -143,6 +144,24 @@ pub fn integer_blocks() -> Result<(), u32> {
             .any(|(a, b)| a != b)
         {
             return Err(block);
+        }
+    }
+    Ok(())
+}
+
+/// Checks `widen_f16` (the FPU's `vcvtb.f32.f16` on the Cortex-M7) against the software
+/// conversion on every finite f16. Returns the first bit pattern that differs.
+pub fn f16_widening() -> Result<(), u16> {
+    let bits: [u16; 256] = core::array::from_fn(|i| i as u16);
+    let mut out = [0.0f32; 256];
+    for high in 0..=255u16 {
+        let block = bits.map(|low| high << 8 | low);
+        Portable.widen_f16(&block, &mut out);
+        for (&b, &got) in block.iter().zip(&out) {
+            let finite = b & 0x7C00 != 0x7C00;
+            if finite && got.to_bits() != f16_to_f32(b).to_bits() {
+                return Err(b);
+            }
         }
     }
     Ok(())

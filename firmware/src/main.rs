@@ -99,6 +99,9 @@ pub mod exit_code {
     /// The build's int8 register block differs from the portable one
     /// ([`crate::fma_check::integer_blocks`]).
     pub const INTEGER_MISMATCH: i32 = 15;
+    /// The build's f16 widening differs from the software conversion
+    /// ([`crate::fma_check::f16_widening`]).
+    pub const F16_MISMATCH: i32 = 16;
     /// A panic (none is expected: the core reports every bad input as a value).
     pub const PANIC: i32 = 101;
 }
@@ -377,6 +380,12 @@ fn firmware_main(counter: Option<&'static dyn Counter>) -> i32 {
             "integer kernel check failed: block {block} differs from the portable sums"
         ));
         return exit_code::INTEGER_MISMATCH;
+    }
+    if let Err(bits) = fma_check::f16_widening() {
+        print(format_args!(
+            "f16 check failed: {bits:#06x} widens differently from the software conversion"
+        ));
+        return exit_code::F16_MISMATCH;
     }
     let start = counter.map(|c| c.instructions());
     let (code, timings) = run(localizer, device, counter.map(|c| c.clock()));

@@ -56,9 +56,36 @@ pub trait Fma: Copy {
     #[inline(always)]
     fn widen_f16(self, bits: &[u16], out: &mut [f32]) {
         for (o, &b) in out.iter_mut().zip(bits) {
-            *o = f16_to_f32(b);
+            #[cfg(all(feature = "arm-fma", target_arch = "arm"))]
+            {
+                *o = f16_to_f32_vfp(b);
+            }
+            #[cfg(not(all(feature = "arm-fma", target_arch = "arm")))]
+            {
+                *o = f16_to_f32(b);
+            }
         }
     }
+}
+
+/// [`f16_to_f32`] with the FPU's `vcvtb.f32.f16` (Cortex-M4F/M7 FPUs have it; the core's
+/// `arm-fma` feature declares such an FPU): exact for every finite f16, as the software
+/// conversion.
+#[cfg(all(feature = "arm-fma", target_arch = "arm"))]
+#[inline(always)]
+#[allow(unsafe_code)]
+fn f16_to_f32_vfp(bits: u16) -> f32 {
+    let mut x = f32::from_bits(u32::from(bits));
+    // SAFETY: `vcvtb.f32.f16` reads the low half of the given FPU register and writes the
+    // same register; the `arm-fma` feature declares an FPv4/FPv5 FPU, which has it.
+    unsafe {
+        core::arch::asm!(
+            "vcvtb.f32.f16 {x}, {x}",
+            x = inout(sreg) x,
+            options(pure, nomem, nostack, preserves_flags)
+        );
+    }
+    x
 }
 
 /// [`Fma::mul_add_lanes`] with NEON (`L` a multiple of 4): `vfmaq_f32` is `fmla`, a fused
