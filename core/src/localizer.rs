@@ -459,11 +459,12 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             log::debug!("map view {view}: {len} usable points ({refused} refused), skipped");
             return Ok(false);
         }
-        // Precomputed features of this view fit when they were computed with this model
-        // for the same points (the first `len` with a bearing: the same count).
+        // Precomputed features of this view fit when they were computed with this model at
+        // this capacity (the projection rule's reference depth depends on it) for the same
+        // points (the first `len` with a bearing: the same count).
         let stored = map
             .view_features()
-            .filter(|f| f.model_checksum() == model.checksum())
+            .filter(|f| f.model_checksum() == model.checksum() && f.capacity() == N)
             .and_then(|f| f.view(view))
             .filter(|rows| {
                 rows.count == len && rows.dim == usize::from(model.config().feature_dim)

@@ -87,6 +87,13 @@ fn features_of_another_model_or_capacity_are_not_used() {
         localize(&model, &attach(map, &small).expect("attaches")),
         want
     );
+    // At N = 1024 the counts are the same (no view has 256 points) but the projection rule's
+    // reference depth may differ with the capacity: another capacity is never used.
+    let wider = with_one_value_changed(&build_view_features(&model, &map, 1024).expect("f"));
+    assert_eq!(
+        localize(&model, &attach(map, &wider).expect("attaches")),
+        want
+    );
 }
 
 #[test]
