@@ -7,7 +7,9 @@
 # The image (same data and grading as build.sh's x86_64 one) prints its instruction counts over
 # semihosting (exact under -icount shift=0: one instruction per virtual nanosecond) and exits
 # with its status through semihosting; this script requires 0 (pose right). Needs the shipped
-# models/gomatch-int8.bin; QEMU_TIMEOUT (seconds, default 1200) bounds the run.
+# models/gomatch-int8.bin; QEMU_TIMEOUT (seconds, default 1200) bounds the run. With
+# GOMATCH_FIRMWARE_MAX_INSTRUCTIONS set, a query counting more instructions fails the script
+# (a deterministic budget under -icount, not a timing).
 set -euo pipefail
 cd "$(dirname "$0")"
 repo=$(cd .. && pwd)
@@ -49,4 +51,12 @@ echo "$board image exited with status $status after $(( $(date +%s) - start )) s
 if [ "$status" != 0 ]; then
   echo "$board image: expected status 0 (pose right)" >&2
   exit 1
+fi
+if [ -n "${GOMATCH_FIRMWARE_MAX_INSTRUCTIONS:-}" ]; then
+  count=$(sed -n 's/^instructions, whole query: \([0-9]*\).*/\1/p' "target/$board.log")
+  if [ -z "$count" ] || [ "$count" -gt "$GOMATCH_FIRMWARE_MAX_INSTRUCTIONS" ]; then
+    echo "$board image: ${count:-no} instructions per query, over the budget of $GOMATCH_FIRMWARE_MAX_INSTRUCTIONS" >&2
+    exit 1
+  fi
+  echo "$board image: $count instructions per query, within the budget of $GOMATCH_FIRMWARE_MAX_INSTRUCTIONS"
 fi

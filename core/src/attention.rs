@@ -11,7 +11,7 @@
 use crate::limits::{MAX_FEATURE_DIM, MAX_HEADS, MAX_KNN};
 use crate::nn::dispatch::{with_fma, Fma, Kernel};
 use crate::nn::linear::{accumulate, chunk_rows, larger, store, store_point_major};
-use crate::nn::{exp, instance_norm, leaky_relu, linear, relu, Input, Moments};
+use crate::nn::{exp, instance_norm, leaky_relu, linear, relu, Input, Moments, ROW_BLOCK};
 use crate::weights::{CrossLayerWeights, Linear, SelfLayerWeights};
 
 /// Neighbour lists of a set: `graph[i][..k]` are the `k` nearest points of point `i`.
@@ -194,6 +194,13 @@ fn edge_conv<F: Fma>(
     linear(centre, input, 0..channels, |r, i0, v| {
         store(out, n, r, i0, v)
     });
+    // The edge values of one channel, kept for the variance pass when the scratch has room.
+    let edge_count = if k > 0 && rows.len() >= n * (k + ROW_BLOCK) {
+        n * k
+    } else {
+        0
+    };
+    let (edges, rows) = rows.split_at_mut(edge_count);
     let chunk = chunk_rows(rows.len(), n);
     let mut r0 = 0;
     while r0 < channels {
@@ -209,6 +216,7 @@ fn edge_conv<F: Fma>(
                 &graph[..n],
                 k,
                 &mut maxima[..n],
+                edges,
             );
         }
         r0 = r1;
@@ -217,7 +225,9 @@ fn edge_conv<F: Fma>(
 
 /// Turns the centre term `a` of one channel into the layer output, given the neighbour
 /// term `b`: edge values `a_i + b_j`, their mean and variance over all edges, then
-/// `LeakyReLU((a_i + max_j b_j - mean) / std)`.
+/// `LeakyReLU((a_i + max_j b_j - mean) / std)`. With room for all `n k` edge values in
+/// `edges` the variance pass reads them back instead of gathering `b_j` again (same sums,
+/// same order).
 #[inline(always)]
 fn finish_edge_channel<F: Fma>(
     fma: F,
@@ -226,24 +236,47 @@ fn finish_edge_channel<F: Fma>(
     graph: &[Neighbours],
     k: usize,
     maxima: &mut [f32],
+    edges: &mut [f32],
 ) {
     let mut moments = Moments::default();
-    for ((&ai, neighbours), m) in a.iter().zip(graph).zip(maxima.iter_mut()) {
-        let mut best = f32::NEG_INFINITY;
-        for &j in &neighbours[..k] {
-            let bj = b[usize::from(j)];
-            moments.add(ai + bj);
-            best = best.max(bj);
+    let deviations = match edges.get_mut(..a.len() * k).filter(|_| k > 0) {
+        Some(edges) => {
+            let rows = a.iter().zip(graph).zip(edges.chunks_exact_mut(k));
+            for (((&ai, neighbours), edge_row), m) in rows.zip(maxima.iter_mut()) {
+                let mut best = f32::NEG_INFINITY;
+                for (&j, e) in neighbours[..k].iter().zip(edge_row) {
+                    let bj = b[usize::from(j)];
+                    *e = ai + bj;
+                    moments.add(*e);
+                    best = best.max(bj);
+                }
+                *m = best;
+            }
+            let mean = moments.mean();
+            edges
+                .iter()
+                .fold(0.0f64, |sum, &e| sum + Moments::squared_deviation(e, mean))
         }
-        *m = best;
-    }
-    let mean = moments.mean();
-    let mut deviations = 0.0f64;
-    for (&ai, neighbours) in a.iter().zip(graph) {
-        for &j in &neighbours[..k] {
-            deviations += Moments::squared_deviation(ai + b[usize::from(j)], mean);
+        None => {
+            for ((&ai, neighbours), m) in a.iter().zip(graph).zip(maxima.iter_mut()) {
+                let mut best = f32::NEG_INFINITY;
+                for &j in &neighbours[..k] {
+                    let bj = b[usize::from(j)];
+                    moments.add(ai + bj);
+                    best = best.max(bj);
+                }
+                *m = best;
+            }
+            let mean = moments.mean();
+            let mut deviations = 0.0f64;
+            for (&ai, neighbours) in a.iter().zip(graph) {
+                for &j in &neighbours[..k] {
+                    deviations += Moments::squared_deviation(ai + b[usize::from(j)], mean);
+                }
+            }
+            deviations
         }
-    }
+    };
     let normalizer = moments.normalizer(deviations);
     for (ai, &m) in a.iter_mut().zip(maxima.iter()) {
         *ai = leaky_relu(normalizer.apply_with(fma, *ai + m));
@@ -327,11 +360,20 @@ struct AttentionShape {
 /// Queries attended together: each key and value loaded serves all of them (8 x 8 score
 /// accumulators: half of the 16 AVX2 vector registers; 16 KiB of score tiles on the stack).
 /// Grouping queries changes no bit.
+#[cfg(not(target_arch = "arm"))]
 const QUERY_BLOCK: usize = 8;
+/// Queries attended together on Cortex-M: 4 x 4 score accumulators and four key lanes fit
+/// the FPU's 32 single-precision registers (8 x 8 spilled to the stack).
+#[cfg(target_arch = "arm")]
+const QUERY_BLOCK: usize = 6;
 /// Source points per block of the online softmax (a multiple of [`LANES`]).
 const SOURCE_BLOCK: usize = 64;
 /// Width of the inner register tiles.
+#[cfg(not(target_arch = "arm"))]
 const LANES: usize = 8;
+/// Width of the inner register tiles on Cortex-M.
+#[cfg(target_arch = "arm")]
+const LANES: usize = 4;
 
 /// Scaled dot-product attention (eq. 6-7) of the queries `q` (channel-major `d x nx`,
 /// replaced by the messages) over the keys `k` (channel-major `d x ns`) and values `v`
@@ -699,19 +741,20 @@ mod tests {
         }
         let mut normed = edges;
         instance_norm(&mut normed);
-        let mut out = a;
-        let mut maxima = [0.0; 4];
-        finish_edge_channel(
-            crate::nn::dispatch::Portable,
-            &mut out,
-            &b,
-            &graph,
-            2,
-            &mut maxima,
-        );
+        // Without room for the edge values (gathered twice) and with it (read back).
+        let finish = |edge_values: &mut [f32]| {
+            let mut out = a;
+            let mut maxima = [0.0; 4];
+            let portable = crate::nn::dispatch::Portable;
+            finish_edge_channel(portable, &mut out, &b, &graph, 2, &mut maxima, edge_values);
+            out
+        };
+        let gathered = finish(&mut []);
+        let kept = finish(&mut [0.0; 8]);
         for i in 0..4 {
             let expected = leaky_relu(normed[i * 2]).max(leaky_relu(normed[i * 2 + 1]));
-            assert!((out[i] - expected).abs() < 1e-6, "{i}");
+            assert!((gathered[i] - expected).abs() < 1e-6, "{i}");
+            assert_eq!(gathered[i].to_bits(), kept[i].to_bits(), "{i}");
         }
     }
 

@@ -8,7 +8,7 @@
 
 use gomatch::nn::dispatch::{f16_to_f32, Fma, Portable};
 use gomatch::nn::fma::mul_add;
-use gomatch::nn::integer::{block_sums, TilePairs, WeightPairs, POINTS, TILE};
+use gomatch::nn::integer::{block_sums, TilePairs, WeightPairs, WordAligned, POINTS, TILE};
 use gomatch::nn::COL_BLOCK;
 use gomatch::rng::SplitMix64;
 
@@ -126,14 +126,14 @@ pub fn integer_blocks() -> Result<(), u32> {
     };
     for block in 0..BLOCKS {
         let pairs = 1 + rng.below(16) as usize;
-        let weights: [WeightPairs; 16] = core::array::from_fn(|_| {
+        let weights: WordAligned<[WeightPairs; 16]> = WordAligned(core::array::from_fn(|_| {
             core::array::from_fn(|_| [0; 2].map(|_| extreme(rng.next_u64(), 127)))
-        });
-        let tile: [TilePairs; 16] = core::array::from_fn(|_| {
+        }));
+        let tile: WordAligned<[TilePairs; 16]> = WordAligned(core::array::from_fn(|_| {
             core::array::from_fn(|_| [0; 2].map(|_| extreme(rng.next_u64(), 32767)))
-        });
+        }));
         let p = POINTS * rng.below((TILE / POINTS) as u32) as usize;
-        let (w, x) = (&weights[..pairs], &tile[..pairs]);
+        let (w, x) = (&weights.0[..pairs], &tile.0[..pairs]);
         let (got, want) = (Portable.pair_sums(w, x, p), block_sums(w, x, p));
         // Element by element: `==` on the arrays would call `bcmp`, which the x86_64 image
         // does not have.

@@ -5,7 +5,7 @@
 
 use core::sync::atomic::{AtomicU32, Ordering};
 
-use cortex_m_rt::{entry, exception};
+use cortex_m_rt::entry;
 
 pub use crate::semihosting::{exit, print};
 use crate::{firmware_main, Counter};
@@ -17,7 +17,11 @@ const SYST_RVR: *mut u32 = 0xE000_E014 as *mut u32;
 /// SysTick current value register.
 const SYST_CVR: *mut u32 = 0xE000_E018 as *mut u32;
 /// SysTick counts down from this (24 bits) and then wraps.
+#[cfg(not(feature = "pc-profile"))]
 const RELOAD: u32 = 0x00FF_FFFF;
+/// SysTick wraps (and the profiler samples) every `RELOAD + 1` ticks.
+#[cfg(feature = "pc-profile")]
+const RELOAD: u32 = pc_profile::PERIOD_TICKS - 1;
 /// CSR: enable, interrupt on wrap, clocked by the processor clock.
 const ENABLE_TICKINT_CPUCLK: u32 = 0b111;
 /// Iterations of the calibration loop (two instructions each).
@@ -26,7 +30,12 @@ const CALIBRATION_ITERATIONS: u32 = 2_000_000;
 /// SysTick wraps since the counter started.
 static WRAPS: AtomicU32 = AtomicU32::new(0);
 
-#[exception]
+#[cfg(feature = "pc-profile")]
+#[path = "pc_profile.rs"]
+mod pc_profile;
+
+#[cfg(not(feature = "pc-profile"))]
+#[cortex_m_rt::exception]
 fn SysTick() {
     WRAPS.fetch_add(1, Ordering::Relaxed);
 }
@@ -109,5 +118,8 @@ fn main() -> ! {
     let q16 = calibrate();
     INSTRUCTIONS_PER_TICK_Q16.store(q16, Ordering::Relaxed);
     crate::print(format_args!("SysTick: {q16}/65536 instructions per tick"));
-    exit(firmware_main(Some(&SysTickCounter)))
+    let code = firmware_main(Some(&SysTickCounter));
+    #[cfg(feature = "pc-profile")]
+    pc_profile::print_samples();
+    exit(code)
 }

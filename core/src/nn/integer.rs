@@ -33,11 +33,20 @@ pub const POINTS: usize = 2;
 /// Largest quantized activation magnitude.
 const Q_MAX: f32 = 32767.0;
 /// Weight pairs one panel holds (32 KiB: each panel quantizes the layer input once, and the
-/// tiles' strided reads of a channel-major input miss the cache; 16 KiB cost the Cortex-M7
-/// firmware query 8 % more instructions).
+/// tiles' strided reads of a channel-major input miss the cache).
+#[cfg(not(target_arch = "arm"))]
 const PANEL_PAIRS: usize = 8192;
 /// Most rows of a panel.
+#[cfg(not(target_arch = "arm"))]
 const PANEL_MAX_ROWS: usize = 128;
+/// Weight pairs one panel holds on Cortex-M (64 KiB of stack: the widest layers, 384 and
+/// 256 inputs, take two panels instead of four; the 32 KiB panel cost the Cortex-M7
+/// firmware query 3.6 % more instructions).
+#[cfg(target_arch = "arm")]
+const PANEL_PAIRS: usize = 16384;
+/// Most rows of a panel on Cortex-M.
+#[cfg(target_arch = "arm")]
+const PANEL_MAX_ROWS: usize = 256;
 /// `1.5 * 2^23`: adding and subtracting it rounds to the nearest integer (ties to even).
 const ROUNDER: f32 = 12_582_912.0;
 
@@ -49,6 +58,11 @@ pub type WeightPairs = [Pair; ROWS];
 pub type TilePairs = [Pair; TILE];
 /// The sums of one register block.
 pub type BlockSums = [[i32; POINTS]; ROWS];
+
+/// Weight panels and activation tiles on 4-byte boundaries, so that the Cortex-M7 kernel
+/// reads two pairs with one `ldrd` (which faults on an unaligned address).
+#[repr(C, align(4))]
+pub struct WordAligned<T>(pub T);
 
 /// [`super::linear::linear`] for int8 weights on a set of at least
 /// [`super::linear::SMALL_SET`] points (the caller checked that `w.int8_row` answers).
@@ -69,27 +83,27 @@ pub fn linear_int8<F: Fma, W: WeightRows>(
     let layout = PairLayout::of(input);
     let pairs = layout.pairs();
     let panel_len = (PANEL_PAIRS / pairs.max(1) / ROWS * ROWS).clamp(ROWS, PANEL_MAX_ROWS);
-    let mut panel = [[[0i16; 2]; ROWS]; PANEL_PAIRS / ROWS];
+    let mut panel = WordAligned([[[0i16; 2]; ROWS]; PANEL_PAIRS / ROWS]);
     let mut row_scale = [0.0f32; PANEL_MAX_ROWS];
     let mut bias = [0.0f32; PANEL_MAX_ROWS];
-    let mut tile = [[[0i16; 2]; TILE]; GROUP / 2];
+    let mut tile = WordAligned([[[0i16; 2]; TILE]; GROUP / 2]);
     let mut y = [[0.0f32; TILE]; PANEL_MAX_ROWS];
     let n = input.points();
     let mut p0 = rows.start;
     while p0 < rows.end {
         let count = panel_len.min(rows.end - p0);
         let panel_rows = PanelRows { p0, count, pairs };
-        panel_rows.unpack(w, &layout, &mut panel, &mut row_scale, &mut bias);
+        panel_rows.unpack(w, &layout, &mut panel.0, &mut row_scale, &mut bias);
         let mut i0 = 0;
         while i0 < n {
             let len = TILE.min(n - i0);
             y[..count].fill([0.0; TILE]);
             for group in layout.groups() {
-                let point_scale = quantize_group(input, &group, i0, len, &mut tile);
-                let x = &tile[..group.pairs.len()];
+                let point_scale = quantize_group(input, &group, i0, len, &mut tile.0);
+                let x = &tile.0[..group.pairs.len()];
                 let mut r = 0;
                 while r < count {
-                    let block = &panel[r / ROWS * pairs..(r / ROWS + 1) * pairs];
+                    let block = &panel.0[r / ROWS * pairs..(r / ROWS + 1) * pairs];
                     let sums = tile_sums(fma, &block[group.pairs.clone()], x);
                     for (yb, row_sums) in y[r..count].iter_mut().zip(&sums) {
                         for ((yt, &sum), &point) in yb.iter_mut().zip(row_sums).zip(&point_scale) {
@@ -222,7 +236,7 @@ impl PanelRows {
 /// Quantizes points `i0..i0 + len` of `group`'s channels into `tile` (`[pair][point]`, zero
 /// in the pad of an odd last channel) and returns the group's point scales (`max|x| / 32767`
 /// over its channels, 0 for an all-zero point). A part too short reads as zeros, as in the
-/// f32 kernel.
+/// f32 kernel. A full tile is read in place; a short one is first copied, zero-padded.
 #[inline(always)]
 fn quantize_group(
     input: &Input<'_>,
@@ -231,7 +245,30 @@ fn quantize_group(
     len: usize,
     tile: &mut [TilePairs],
 ) -> [f32; TILE] {
-    let values = |c: usize| padded(input.channel(group.part, c, i0, len));
+    let channel = |c: usize| input.channel(group.part, c, i0, len);
+    // Channels lie one after the other: when the last has the whole tile, all have.
+    let last = group.channels.end.saturating_sub(1);
+    if channel(last).first_chunk::<TILE>().is_some() {
+        quantize_channels(group, tile, |c| {
+            channel(c).first_chunk::<TILE>().unwrap_or(&[0.0; TILE])
+        })
+    } else {
+        let mut values = [[0.0f32; TILE]; GROUP];
+        for (row, c) in values.iter_mut().zip(group.channels.clone()) {
+            *row = padded(channel(c));
+        }
+        let first = group.channels.start;
+        quantize_channels(group, tile, |c| &values[c - first])
+    }
+}
+
+/// [`quantize_group`] on the tile values of each channel of `group`, `values(c)`.
+#[inline(always)]
+fn quantize_channels<'a>(
+    group: &Group,
+    tile: &mut [TilePairs],
+    values: impl Fn(usize) -> &'a [f32; TILE],
+) -> [f32; TILE] {
     let mut max_abs = [0.0f32; TILE];
     for c in group.channels.clone() {
         for (m, v) in max_abs.iter_mut().zip(values(c)) {
@@ -254,23 +291,18 @@ fn quantize_group(
 
 /// One channel's tile values times each point's inverse scale, quantized.
 #[inline(always)]
-fn quantized(x: [f32; TILE], inverse: &[f32; TILE]) -> [i16; TILE] {
+fn quantized(x: &[f32; TILE], inverse: &[f32; TILE]) -> [i16; TILE] {
     core::array::from_fn(|t| quantize(x[t] * inverse[t]))
 }
 
 /// A channel's values at one tile's points, zero past the end.
 #[inline(always)]
 fn padded(values: &[f32]) -> [f32; TILE] {
-    match values.first_chunk::<TILE>() {
-        Some(x) => *x,
-        None => {
-            let mut x = [0.0; TILE];
-            for (xt, &v) in x.iter_mut().zip(values) {
-                *xt = v;
-            }
-            x
-        }
+    let mut x = [0.0; TILE];
+    for (xt, &v) in x.iter_mut().zip(values) {
+        *xt = v;
     }
+    x
 }
 
 /// Channels `2p` and `2p + 1` of a tile's points as pairs.
@@ -322,38 +354,85 @@ pub fn block_sums(w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
 }
 
 /// [`block_sums`] with ARMv7E-M's `smlad` in a loop of its own (the core's `arm-dsp`
-/// feature): per channel pair two weight words, two point words and four `smlad`, 10
-/// instructions where the compiled loop around one `smlad` per `asm!` block took 13.
+/// feature): per channel pair one `ldrd` of the two rows' weights, one `ldrd` of the two
+/// points and four `smlad`, four pairs a turn (6.5 instructions a pair; one `ldr` per word
+/// and a pair a turn took 10). Slices not on 4-byte boundaries (see [`WordAligned`]) take the
+/// portable [`block_sums`].
 #[cfg(all(feature = "arm-dsp", target_arch = "arm"))]
 #[inline(always)]
 #[allow(unsafe_code)]
 pub fn block_sums_dsp(w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
     const { assert!(ROWS == 2 && POINTS == 2) };
-    let mut acc = [[0i32; POINTS]; ROWS];
     let pairs = w.len().min(x.len());
-    if p + POINTS > TILE || pairs == 0 {
-        return acc;
+    let unaligned = (w.as_ptr() as usize | x.as_ptr() as usize) & 3 != 0;
+    if p + POINTS > TILE || pairs == 0 || unaligned {
+        return block_sums(w, x, p);
     }
-    let [[mut a00, mut a01], [mut a10, mut a11]] = acc;
+    let (mut a00, mut a01, mut a10, mut a11) = (0i32, 0i32, 0i32, 0i32);
     // SAFETY: the loop reads `pairs` weight pairs of two rows (8 bytes each, from `w`) and,
     // for each, points `p` and `p + 1` of one tile pair (`x[k][p..p + 2]`, in bounds as
-    // `p + 2 <= TILE`), walking `x` by its 64-byte stride: all inside the two slices.
-    // `ldr` accepts unaligned words on ARMv7-M; `smlad` only touches the registers given
-    // (and may set the sticky Q flag, which nothing reads); the `arm-dsp` feature declares
-    // an ARMv7E-M target, which has the instruction.
+    // `p + 2 <= TILE`), walking `x` by its 64-byte stride: all inside the two slices, whose
+    // starts are 4-byte aligned (checked above; every offset is a multiple of 4), as `ldrd`
+    // requires. `smlad` only touches the registers given (and may set the sticky Q flag,
+    // which nothing reads); the `arm-dsp` feature declares an ARMv7E-M target, which has
+    // the instruction. The count's two low bits are taken before the loop: each `lsrs` moves
+    // one into the carry and sets Z when no turn of four is left (`ldrd` and `smlad` keep
+    // the flags).
     unsafe {
         core::arch::asm!(
+            "lsrs {n}, {n}, #1",
+            "bcc 3f",
+            "ldrd {w0}, {w1}, [{wp}], #8",
+            "ldrd {x0}, {x1}, [{xp}], #{stride}",
+            "smlad {a00}, {w0}, {x0}, {a00}",
+            "smlad {a01}, {w0}, {x1}, {a01}",
+            "smlad {a10}, {w1}, {x0}, {a10}",
+            "smlad {a11}, {w1}, {x1}, {a11}",
+            "3:",
+            "lsrs {n}, {n}, #1",
+            "bcc 4f",
+            "ldrd {w0}, {w1}, [{wp}], #8",
+            "ldrd {x0}, {x1}, [{xp}], #{stride}",
+            "smlad {a00}, {w0}, {x0}, {a00}",
+            "smlad {a01}, {w0}, {x1}, {a01}",
+            "smlad {a10}, {w1}, {x0}, {a10}",
+            "smlad {a11}, {w1}, {x1}, {a11}",
+            "ldrd {w0}, {w1}, [{wp}], #8",
+            "ldrd {x0}, {x1}, [{xp}], #{stride}",
+            "smlad {a00}, {w0}, {x0}, {a00}",
+            "smlad {a01}, {w0}, {x1}, {a01}",
+            "smlad {a10}, {w1}, {x0}, {a10}",
+            "smlad {a11}, {w1}, {x1}, {a11}",
+            "4:",
+            "beq 5f",
             "2:",
-            "ldr {w0}, [{wp}], #4",
-            "ldr {w1}, [{wp}], #4",
-            "ldr {x1}, [{xp}, #4]",
-            "ldr {x0}, [{xp}], #{stride}",
+            "ldrd {w0}, {w1}, [{wp}], #8",
+            "ldrd {x0}, {x1}, [{xp}], #{stride}",
+            "smlad {a00}, {w0}, {x0}, {a00}",
+            "smlad {a01}, {w0}, {x1}, {a01}",
+            "smlad {a10}, {w1}, {x0}, {a10}",
+            "smlad {a11}, {w1}, {x1}, {a11}",
+            "ldrd {w0}, {w1}, [{wp}], #8",
+            "ldrd {x0}, {x1}, [{xp}], #{stride}",
+            "smlad {a00}, {w0}, {x0}, {a00}",
+            "smlad {a01}, {w0}, {x1}, {a01}",
+            "smlad {a10}, {w1}, {x0}, {a10}",
+            "smlad {a11}, {w1}, {x1}, {a11}",
+            "ldrd {w0}, {w1}, [{wp}], #8",
+            "ldrd {x0}, {x1}, [{xp}], #{stride}",
+            "smlad {a00}, {w0}, {x0}, {a00}",
+            "smlad {a01}, {w0}, {x1}, {a01}",
+            "smlad {a10}, {w1}, {x0}, {a10}",
+            "smlad {a11}, {w1}, {x1}, {a11}",
+            "ldrd {w0}, {w1}, [{wp}], #8",
+            "ldrd {x0}, {x1}, [{xp}], #{stride}",
             "smlad {a00}, {w0}, {x0}, {a00}",
             "smlad {a01}, {w0}, {x1}, {a01}",
             "smlad {a10}, {w1}, {x0}, {a10}",
             "smlad {a11}, {w1}, {x1}, {a11}",
             "subs {n}, {n}, #1",
             "bne 2b",
+            "5:",
             stride = const core::mem::size_of::<TilePairs>(),
             wp = inout(reg) w.as_ptr() => _,
             xp = inout(reg) x.as_ptr().cast::<Pair>().add(p) => _,
@@ -369,8 +448,7 @@ pub fn block_sums_dsp(w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums
             options(nostack, readonly)
         );
     }
-    acc = [[a00, a01], [a10, a11]];
-    acc
+    [[a00, a01], [a10, a11]]
 }
 
 /// [`block_sums`] with AVX2's `vpmaddwd` (`_mm256_madd_epi16`: eight pair products summed
