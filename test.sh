@@ -9,5 +9,6 @@ cd "$(dirname "$0")"
 cargo test --workspace --release
 # The core without its default `link` feature (no device link) builds and passes on its own.
 cargo test -p gomatch --release --no-default-features --lib
+cargo test -p gomatch --release --lib --features f32-statistics  # single-precision FPUs
 cargo build --release -p gomatch-sim -p gomatch-tools
 tools/train/run_tests.sh

@@ -11,7 +11,7 @@
 use crate::limits::{MAX_FEATURE_DIM, MAX_HEADS, MAX_KNN};
 use crate::nn::dispatch::{with_fma, Fma, Kernel};
 use crate::nn::linear::{accumulate, chunk_rows, larger, store, store_point_major};
-use crate::nn::{exp, instance_norm, leaky_relu, linear, relu, Input, Moments, ROW_BLOCK};
+use crate::nn::{exp, instance_norm, leaky_relu, linear, relu, Input, Moments, StatSum, ROW_BLOCK};
 use crate::weights::{CrossLayerWeights, Linear, SelfLayerWeights};
 
 /// Neighbour lists of a set: `graph[i][..k]` are the `k` nearest points of point `i`.
@@ -253,9 +253,11 @@ fn finish_edge_channel<F: Fma>(
                 *m = best;
             }
             let mean = moments.mean();
-            edges
-                .iter()
-                .fold(0.0f64, |sum, &e| sum + Moments::squared_deviation(e, mean))
+            let mut deviations = StatSum::default();
+            for &e in edges.iter() {
+                deviations.add(Moments::squared_deviation(e, mean));
+            }
+            deviations
         }
         None => {
             for ((&ai, neighbours), m) in a.iter().zip(graph).zip(maxima.iter_mut()) {
@@ -268,16 +270,16 @@ fn finish_edge_channel<F: Fma>(
                 *m = best;
             }
             let mean = moments.mean();
-            let mut deviations = 0.0f64;
+            let mut deviations = StatSum::default();
             for (&ai, neighbours) in a.iter().zip(graph) {
                 for &j in &neighbours[..k] {
-                    deviations += Moments::squared_deviation(ai + b[usize::from(j)], mean);
+                    deviations.add(Moments::squared_deviation(ai + b[usize::from(j)], mean));
                 }
             }
             deviations
         }
     };
-    let normalizer = moments.normalizer(deviations);
+    let normalizer = moments.normalizer(&deviations);
     for (ai, &m) in a.iter_mut().zip(maxima.iter()) {
         *ai = leaky_relu(normalizer.apply_with(fma, *ai + m));
     }

@@ -431,14 +431,9 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         counts: &mut MatchCounts,
     ) -> Result<bool> {
         let pose = map.view(view)?.pose;
-        let observed = map.view_points(view)?;
         let mut len = 0;
         // The map was validated when read, so every index and point resolves.
-        let points = (0..observed.len()).filter_map(|j| {
-            let index = observed.get(j)?;
-            let p = map.point(index as usize).ok()?;
-            Some((index, p.map(f64::from)))
-        });
+        let points = map.view_point_positions(view)?;
         let slots = self
             .network_input
             .iter_mut()

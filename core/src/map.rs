@@ -152,7 +152,7 @@ impl<'a> ViewPoints<'a> {
     }
 
     /// The observed point indices in stored order.
-    pub fn iter(&self) -> impl Iterator<Item = u32> + 'a {
+    pub fn iter(&self) -> impl Iterator<Item = u32> + Clone + 'a {
         self.bytes
             .chunks_exact(INDEX_BYTES)
             .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
@@ -389,6 +389,20 @@ impl<'a> Map<'a> {
             .and_then(|range| self.view_points.get(range))
             .ok_or(out_of_range)?;
         Ok(ViewPoints { bytes })
+    }
+
+    /// The points view `index` observes as `(point index, position)`, in stored order: the
+    /// input of [`crate::localizer::view_point_bearings`]. An index that names no point is
+    /// left out (a map that passed validation has none).
+    pub fn view_point_positions(
+        &self,
+        index: usize,
+    ) -> Result<impl Iterator<Item = (u32, [f64; 3])> + Clone + '_> {
+        let observed = self.view_points(index)?;
+        Ok(observed.iter().filter_map(move |point| {
+            let position = self.point(point as usize).ok()?;
+            Some((point, position.map(f64::from)))
+        }))
     }
 
     /// The `K` views nearest to a coarse prior pose: views whose viewing direction is

@@ -366,11 +366,11 @@ pub fn map_query(map: &Map<'_>, capacity: usize) -> Result<MapQuery> {
     }
     let view = map.view(best.0).map_err(core)?;
     let camera = map.camera(view.camera_index as usize).map_err(core)?;
-    let observed = map.view_points(best.0).map_err(core)?;
-    let points = (0..observed.len()).filter_map(|j| {
-        let p = map.point(observed.get(j)? as usize).ok()?;
-        Some((p, p.map(f64::from)))
-    });
+    // Each point tagged with its own position.
+    let points = map
+        .view_point_positions(best.0)
+        .map_err(core)?
+        .map(|(_, position)| (position, position));
     let mut query = MapQuery {
         pixels: Vec::new(),
         camera,
@@ -379,13 +379,13 @@ pub fn map_query(map: &Map<'_>, capacity: usize) -> Result<MapQuery> {
         points: Vec::new(),
     };
     let mut depths = vec![0.0; capacity];
-    for (point, bearing) in view_point_bearings(view.pose, points, capacity, &mut depths) {
+    for (position, bearing) in view_point_bearings(view.pose, points, capacity, &mut depths) {
         let Ok(pixel) = camera.bearing_to_pixel(bearing) else {
             continue;
         };
         query.pixels.push([pixel[0] as f32, pixel[1] as f32]);
         query.bearings.push(bearing);
-        query.points.push(point.map(f64::from));
+        query.points.push(position);
     }
     ensure!(
         query.pixels.len() >= 10,

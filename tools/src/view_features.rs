@@ -21,11 +21,7 @@ static MATCHER: Mutex<Matcher<MAX_CAPACITY, f16>> = Mutex::new(Matcher::new());
 /// coordinates of the view's first `capacity` points that have one.
 pub fn view_bearings(map: &Map<'_>, view: usize, capacity: usize) -> anyhow::Result<Vec<[f32; 2]>> {
     let pose = map.view(view)?.pose;
-    let observed = map.view_points(view)?;
-    let points = (0..observed.len()).filter_map(|j| {
-        let p = map.point(observed.get(j)? as usize).ok()?;
-        Some(((), p.map(f64::from)))
-    });
+    let points = map.view_point_positions(view)?;
     let mut depths = vec![0.0; capacity];
     Ok(view_point_bearings(pose, points, capacity, &mut depths)
         .map(|(_, b)| [b[0] as f32, b[1] as f32])

@@ -17,5 +17,7 @@ pub mod residual;
 
 pub use exp::exp;
 pub use linear::{linear, Input, WeightRows, COL_BLOCK, MAX_INPUT, ROW_BLOCK, SMALL_SET};
-pub use norm::{instance_norm, l2_normalize_points, leaky_relu, relu, Moments, Normalizer};
+pub use norm::{
+    instance_norm, l2_normalize_points, leaky_relu, relu, Moments, Normalizer, StatSum,
+};
 pub use residual::residual_block;
