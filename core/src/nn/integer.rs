@@ -353,6 +353,22 @@ pub fn block_sums(w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
     acc
 }
 
+/// One channel pair of the Cortex-M7 register block (the template of [`block_sums_dsp`]'s
+/// `asm!`): the two rows' weights and the two points with one `ldrd` each, four `smlad`.
+#[cfg(all(feature = "arm-dsp", target_arch = "arm"))]
+macro_rules! smlad_pair {
+    () => {
+        concat!(
+            "ldrd {w0}, {w1}, [{wp}], #8\n",
+            "ldrd {x0}, {x1}, [{xp}], #{stride}\n",
+            "smlad {a00}, {w0}, {x0}, {a00}\n",
+            "smlad {a01}, {w0}, {x1}, {a01}\n",
+            "smlad {a10}, {w1}, {x0}, {a10}\n",
+            "smlad {a11}, {w1}, {x1}, {a11}"
+        )
+    };
+}
+
 /// [`block_sums`] with ARMv7E-M's `smlad` in a loop of its own (the core's `arm-dsp`
 /// feature): per channel pair one `ldrd` of the two rows' weights, one `ldrd` of the two
 /// points and four `smlad`, four pairs a turn (6.5 instructions a pair; one `ldr` per word
@@ -382,54 +398,19 @@ pub fn block_sums_dsp(w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums
         core::arch::asm!(
             "lsrs {n}, {n}, #1",
             "bcc 3f",
-            "ldrd {w0}, {w1}, [{wp}], #8",
-            "ldrd {x0}, {x1}, [{xp}], #{stride}",
-            "smlad {a00}, {w0}, {x0}, {a00}",
-            "smlad {a01}, {w0}, {x1}, {a01}",
-            "smlad {a10}, {w1}, {x0}, {a10}",
-            "smlad {a11}, {w1}, {x1}, {a11}",
+            smlad_pair!(),
             "3:",
             "lsrs {n}, {n}, #1",
             "bcc 4f",
-            "ldrd {w0}, {w1}, [{wp}], #8",
-            "ldrd {x0}, {x1}, [{xp}], #{stride}",
-            "smlad {a00}, {w0}, {x0}, {a00}",
-            "smlad {a01}, {w0}, {x1}, {a01}",
-            "smlad {a10}, {w1}, {x0}, {a10}",
-            "smlad {a11}, {w1}, {x1}, {a11}",
-            "ldrd {w0}, {w1}, [{wp}], #8",
-            "ldrd {x0}, {x1}, [{xp}], #{stride}",
-            "smlad {a00}, {w0}, {x0}, {a00}",
-            "smlad {a01}, {w0}, {x1}, {a01}",
-            "smlad {a10}, {w1}, {x0}, {a10}",
-            "smlad {a11}, {w1}, {x1}, {a11}",
+            smlad_pair!(),
+            smlad_pair!(),
             "4:",
             "beq 5f",
             "2:",
-            "ldrd {w0}, {w1}, [{wp}], #8",
-            "ldrd {x0}, {x1}, [{xp}], #{stride}",
-            "smlad {a00}, {w0}, {x0}, {a00}",
-            "smlad {a01}, {w0}, {x1}, {a01}",
-            "smlad {a10}, {w1}, {x0}, {a10}",
-            "smlad {a11}, {w1}, {x1}, {a11}",
-            "ldrd {w0}, {w1}, [{wp}], #8",
-            "ldrd {x0}, {x1}, [{xp}], #{stride}",
-            "smlad {a00}, {w0}, {x0}, {a00}",
-            "smlad {a01}, {w0}, {x1}, {a01}",
-            "smlad {a10}, {w1}, {x0}, {a10}",
-            "smlad {a11}, {w1}, {x1}, {a11}",
-            "ldrd {w0}, {w1}, [{wp}], #8",
-            "ldrd {x0}, {x1}, [{xp}], #{stride}",
-            "smlad {a00}, {w0}, {x0}, {a00}",
-            "smlad {a01}, {w0}, {x1}, {a01}",
-            "smlad {a10}, {w1}, {x0}, {a10}",
-            "smlad {a11}, {w1}, {x1}, {a11}",
-            "ldrd {w0}, {w1}, [{wp}], #8",
-            "ldrd {x0}, {x1}, [{xp}], #{stride}",
-            "smlad {a00}, {w0}, {x0}, {a00}",
-            "smlad {a01}, {w0}, {x1}, {a01}",
-            "smlad {a10}, {w1}, {x0}, {a10}",
-            "smlad {a11}, {w1}, {x1}, {a11}",
+            smlad_pair!(),
+            smlad_pair!(),
+            smlad_pair!(),
+            smlad_pair!(),
             "subs {n}, {n}, #1",
             "bne 2b",
             "5:",
