@@ -618,12 +618,16 @@ fn softmax_weight(x: f32) -> f32 {
     }
 }
 
-/// Sum of the values in [`LANES`] interleaved partial sums, then across them in order.
+/// Partial sums of [`lane_sum`]: fixed on every target (not [`LANES`], the register tile
+/// width), so that the softmax totals have the same bits everywhere.
+const SUM_LANES: usize = 8;
+
+/// Sum of the values in [`SUM_LANES`] interleaved partial sums, then across them in order.
 fn lane_sum(values: &[f32]) -> f32 {
-    let mut lanes = [0.0f32; LANES];
-    let mut chunks = values.chunks_exact(LANES);
+    let mut lanes = [0.0f32; SUM_LANES];
+    let mut chunks = values.chunks_exact(SUM_LANES);
     for chunk in &mut chunks {
-        for l in 0..LANES {
+        for l in 0..SUM_LANES {
             lanes[l] += chunk[l];
         }
     }
