@@ -375,7 +375,8 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             ..Localization::failed(Failure::NoViews { skipped })
         };
         if used > 0 {
-            localization.outcome = self.solve(config, query, &mut localization)?;
+            let centres = view_centres(map, &selected)?;
+            localization.outcome = self.solve(config, query, &centres, &mut localization)?;
         }
         let done = now(clock);
         if clock.is_some() {
@@ -514,6 +515,7 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         &mut self,
         config: &LocalizerConfig,
         query: &Query<'_>,
+        view_centres: &[[f64; 3]],
         localization: &mut Localization,
     ) -> Result<core::result::Result<Pose, Failure>> {
         let len = self.merged_len;
@@ -542,6 +544,7 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
                     bearings,
                     points,
                     threshold: config.ransac.threshold,
+                    view_centres,
                 };
                 let evidence = acceptance::gather(&support, query.keypoints, &query.camera);
                 let confidence = config.acceptance.confidence(&evidence);
@@ -565,6 +568,17 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             Err(other) => Err(other),
         }
     }
+}
+
+/// Camera centres of the selected views, by slot.
+fn view_centres(map: &Map<'_>, selected: &[u32]) -> Result<heapless::Vec<[f64; 3], MAX_VIEWS>> {
+    let mut centres = heapless::Vec::new();
+    for &view in selected {
+        let centre = map.view(view as usize)?.pose.center();
+        // `selected` holds at most MAX_VIEWS views.
+        let _ = centres.push([centre.x, centre.y, centre.z]);
+    }
+    Ok(centres)
 }
 
 /// Bearing vector of a query keypoint; a non-finite pixel, or one whose `f32` bearing
@@ -1023,7 +1037,12 @@ mod tests {
         assert!(merged.iter().any(|c| c.keypoint == 7 && c.point == 9));
         let mut localization = Localization::failed(Failure::NoPoseFound);
         let pose = l
-            .solve(&LocalizerConfig::new(), &query, &mut localization)
+            .solve(
+                &LocalizerConfig::new(),
+                &query,
+                &view_centres(&map, &[0]).expect("view 0"),
+                &mut localization,
+            )
             .expect("valid")
             .expect("localized");
         assert!(pose.rotation_error_deg(&truth) < 1e-3);
@@ -1063,13 +1082,16 @@ mod tests {
                 ..LocalizerConfig::new()
             };
             let mut localization = Localization::failed(Failure::NoPoseFound);
-            let outcome = l.solve(&config, &query, &mut localization).expect("valid");
+            let centres = view_centres(&map, &[0]).expect("view 0");
+            let outcome = l
+                .solve(&config, &query, &centres, &mut localization)
+                .expect("valid");
             (outcome, localization, l.inliers().count())
         };
         // Confidence sigmoid(6 - 1 * views) = sigmoid(3) = 0.953 with three views.
         let rule = |min_confidence| AcceptanceRule {
             bias: 6.0,
-            weights: [0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0],
+            weights: [0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0],
             min_confidence,
         };
         let (accepted, with_evidence, marked) = solve(rule(0.95));
@@ -1078,6 +1100,12 @@ mod tests {
         assert_eq!(marked, CAP);
         let evidence = with_evidence.evidence.expect("gathered");
         assert_eq!((evidence.inliers, evidence.views), (CAP as u32, 3));
+        // Under the right pose the points lie in the query's field of view, and the view's
+        // centre is at a finite distance.
+        assert!(evidence.in_view as usize > CAP / 2, "{evidence:?}");
+        let centre = map.view(0).expect("view 0").pose.center();
+        assert!(evidence.view_distance > 0.0 || centre == pose.center());
+        assert!(evidence.view_distance.is_finite(), "{evidence:?}");
         let confidence = with_evidence.confidence.expect("scored");
         assert!((confidence - 0.952_574).abs() < 1e-5, "{confidence}");
 

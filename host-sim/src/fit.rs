@@ -28,9 +28,14 @@ pub struct Args {
     /// Reports scored with the fitted rule, not used in the fit (e.g. validation scenes).
     #[arg(long, num_args = 1..)]
     pub check: Vec<PathBuf>,
-    /// Largest share of wrong poses among the accepted training poses.
-    #[arg(long, default_value_t = 0.005)]
-    pub max_wrong: f64,
+    /// Threshold: the lowest that keeps the share of wrong poses among the accepted
+    /// training poses at most this.
+    #[arg(long, conflicts_with = "min_recall")]
+    pub max_wrong: Option<f64>,
+    /// Threshold: the highest that keeps at least this share of the right training poses
+    /// (the default, 0.97, is issue 19's recall goal).
+    #[arg(long)]
+    pub min_recall: Option<f64>,
     /// L2 penalty on the standardised weights.
     #[arg(long, default_value_t = 1e-2)]
     pub l2: f64,
@@ -74,6 +79,19 @@ impl Scores {
             accepted: accepted.len(),
             accepted_wrong: accepted.iter().filter(|e| !e.right).count(),
         }
+    }
+
+    /// `accepted, wrong (share), recall` for a table cell.
+    fn brief(&self) -> String {
+        let kept = self.accepted - self.accepted_wrong;
+        let share = |a: usize, b: usize| 100.0 * a as f64 / b.max(1) as f64;
+        format!(
+            "{}, {} ({:.1} %), {:.1} %",
+            self.accepted,
+            self.accepted_wrong,
+            share(self.accepted_wrong, self.accepted),
+            share(kept, self.right)
+        )
     }
 
     fn describe(&self) -> String {
@@ -224,16 +242,70 @@ pub fn threshold_for(rule: &AcceptanceRule, examples: &[Example], max_wrong: f64
     best
 }
 
+/// The highest threshold that accepts at least `min_recall` of the right examples (0.0
+/// when there are none).
+pub fn threshold_keeping(rule: &AcceptanceRule, examples: &[Example], min_recall: f64) -> f32 {
+    let mut right: Vec<f32> = examples
+        .iter()
+        .filter(|e| e.right)
+        .map(|e| rule.confidence(&e.evidence))
+        .collect();
+    right.sort_by(|a, b| b.total_cmp(a));
+    let kept = (min_recall.clamp(0.0, 1.0) * right.len() as f64).ceil() as usize;
+    kept.checked_sub(1)
+        .and_then(|i| right.get(i))
+        .copied()
+        .unwrap_or(0.0)
+}
+
+/// How the threshold of a fitted rule is chosen on the training examples.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Operating {
+    /// [`threshold_for`]: at most this share of the accepted poses wrong.
+    MaxWrong(f64),
+    /// [`threshold_keeping`]: at least this share of the right poses accepted.
+    MinRecall(f64),
+}
+
+impl Operating {
+    /// The default: keep 97 % of the right poses.
+    pub const DEFAULT: Self = Self::MinRecall(0.97);
+
+    fn threshold(self, rule: &AcceptanceRule, examples: &[Example]) -> f32 {
+        match self {
+            Self::MaxWrong(share) => threshold_for(rule, examples, share),
+            Self::MinRecall(share) => threshold_keeping(rule, examples, share),
+        }
+    }
+}
+
 /// Fits the rule on the examples.
-pub fn fit(examples: &[Example], l2: f64, max_wrong: f64) -> anyhow::Result<AcceptanceRule> {
+pub fn fit(examples: &[Example], l2: f64, operating: Operating) -> anyhow::Result<AcceptanceRule> {
     let (bias, weights) = logistic_fit(examples, l2)?;
     let mut rule = AcceptanceRule {
         bias: bias as f32,
         weights: weights.map(|w| w as f32),
         min_confidence: 0.0,
     };
-    rule.min_confidence = threshold_for(&rule, examples, max_wrong);
+    rule.min_confidence = operating.threshold(&rule, examples);
     Ok(rule)
+}
+
+/// Precision and recall of the rule at other thresholds, on the training and the checked
+/// examples: the operating points a user can pick with `min_confidence`.
+fn print_operating_points(rule: &AcceptanceRule, training: &[Example], check: &[Example]) {
+    println!(
+        "| min_confidence | training: accepted, wrong, recall | checked: accepted, wrong, recall |"
+    );
+    println!("|---|---|---|");
+    for threshold in [0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95] {
+        let at = AcceptanceRule {
+            min_confidence: threshold,
+            ..*rule
+        };
+        let cell = |examples: &[Example]| Scores::of(&at, examples).brief();
+        println!("| {threshold} | {} | {} |", cell(training), cell(check));
+    }
 }
 
 /// Runs `gomatch-sim fit-acceptance`.
@@ -247,18 +319,30 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         scenes.push(report.scene);
         training.extend(examples);
     }
-    let rule = fit(&training, args.l2, args.max_wrong)?;
+    let operating = match (args.max_wrong, args.min_recall) {
+        (Some(share), _) => Operating::MaxWrong(share),
+        (None, Some(share)) => Operating::MinRecall(share),
+        (None, None) => Operating::DEFAULT,
+    };
+    let rule = fit(&training, args.l2, operating)?;
     let scores = Scores::of(&rule, &training);
     println!("training: {}", scores.describe());
     println!("rule: {rule:?}");
+    let mut checked = Vec::new();
     for path in &args.check {
         let report = read_report(path)?;
+        let examples = examples(&report);
         println!(
             "check {}: {}",
             report.scene,
-            Scores::of(&rule, &examples(&report)).describe()
+            Scores::of(&rule, &examples).describe()
         );
+        checked.extend(examples);
     }
+    if !checked.is_empty() {
+        println!("check, all: {}", Scores::of(&rule, &checked).describe());
+    }
+    print_operating_points(&rule, &training, &checked);
     let output = FitOutput {
         bias: rule.bias,
         weights: rule.weights,

@@ -6,7 +6,9 @@ use std::path::Path;
 
 use gomatch::acceptance::{AcceptanceRule, Evidence, FEATURES};
 use gomatch_sim::eval::{evaluate, read_rule, EvalOptions, Matching, Report};
-use gomatch_sim::fit::{fit, run, threshold_for, Args, Example, FitOutput, Scores};
+use gomatch_sim::fit::{
+    fit, run, threshold_for, threshold_keeping, Args, Example, FitOutput, Operating, Scores,
+};
 use gomatch_sim::host::CAPACITY;
 use gomatch_sim::protocol::ProtocolParams;
 use gomatch_sim::synthetic::synthetic_scene;
@@ -18,15 +20,18 @@ fn example(i: u32, right: bool) -> Example {
     } else {
         (4 + i % 9, 1 + i % 5, 1 + i % 3)
     };
+    let merged = inliers * 2 + 10 * u32::from(!right);
     Example {
         evidence: Evidence {
-            merged: inliers * 2 + 10 * u32::from(!right),
+            merged,
             inliers,
             loose: inliers + i % 4,
             cells,
             bbox_area: cells as f32 / 64.0,
             mean_probability: 0.5 + 0.01 * (i % 10) as f32,
             views,
+            in_view: if right { merged - i % 5 } else { merged / 2 },
+            view_distance: if right { 0.2 } else { 1.0 } + 0.1 * (i % 3) as f32,
         },
         right,
     }
@@ -46,16 +51,19 @@ fn examples() -> Vec<Example> {
 #[test]
 fn the_fit_refuses_the_wrong_training_poses_and_is_deterministic() {
     let examples = examples();
-    let rule = fit(&examples, 1e-2, 0.0).unwrap();
+    let rule = fit(&examples, 1e-2, Operating::MaxWrong(0.0)).unwrap();
     let scores = Scores::of(&rule, &examples);
     println!("{rule:?}: {scores:?}");
     assert_eq!(scores.accepted_wrong, 0);
     assert_eq!((scores.candidates, scores.right), (43, 30));
     assert!(scores.accepted >= 20, "{scores:?}");
     assert!(rule.weights.iter().all(|w| w.is_finite()));
-    assert_eq!(fit(&examples, 1e-2, 0.0).unwrap(), rule);
+    assert_eq!(
+        fit(&examples, 1e-2, Operating::MaxWrong(0.0)).unwrap(),
+        rule
+    );
     // Tolerating one wrong pose in 30 accepts more.
-    let tolerant = fit(&examples, 1e-2, 1.0 / 30.0).unwrap();
+    let tolerant = fit(&examples, 1e-2, Operating::MaxWrong(1.0 / 30.0)).unwrap();
     assert!(tolerant.min_confidence <= rule.min_confidence);
     assert!(Scores::of(&tolerant, &examples).accepted >= scores.accepted);
 }
@@ -65,7 +73,7 @@ fn the_threshold_is_the_lowest_confidence_within_the_wrong_share() {
     // Confidence grows with the number of views: views 1 (wrong), 2, 3 (wrong), 4, 5.
     let rule = AcceptanceRule {
         bias: -3.0,
-        weights: [0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+        weights: [0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
         min_confidence: 0.0,
     };
     let by_views = |views: u32, right: bool| Example {
@@ -88,6 +96,21 @@ fn the_threshold_is_the_lowest_confidence_within_the_wrong_share() {
     assert_eq!(threshold_for(&rule, &examples, 0.5), confidence(1));
     // Nothing reaches the share: accept only certainty.
     assert_eq!(threshold_for(&rule, &[by_views(9, false)], 0.0), 1.0);
+    // Keeping a share of the three right ones (views 2, 4, 5): the highest threshold that
+    // accepts that many of them.
+    assert_eq!(
+        threshold_keeping(&rule, &examples, 1.0 / 3.0),
+        confidence(5)
+    );
+    assert_eq!(threshold_keeping(&rule, &examples, 0.5), confidence(4));
+    assert_eq!(threshold_keeping(&rule, &examples, 0.97), confidence(2));
+    assert_eq!(threshold_keeping(&rule, &examples, 0.0), 0.0);
+    assert_eq!(threshold_keeping(&rule, &[by_views(9, false)], 0.97), 0.0);
+    // The default fit keeps at least 97 % of the 30 right training poses: all of them.
+    let all = crate::examples();
+    let rule = fit(&all, 1e-2, Operating::DEFAULT).unwrap();
+    let scores = Scores::of(&rule, &all);
+    assert_eq!(scores.accepted - scores.accepted_wrong, 30, "{scores:?}");
 }
 
 /// A report of a synthetic scene whose queries carry the given examples.
@@ -125,7 +148,8 @@ fn the_command_writes_a_rule_that_eval_reads() {
     let args = Args {
         reports: vec![train.clone()],
         check: vec![check],
-        max_wrong: 0.0,
+        max_wrong: None,
+        min_recall: None,
         l2: 1e-2,
         out: out.clone(),
     };
