@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Bit-identical across machines: compares the reply bytes (stage timings cleared) that the firmware
-# images printed on x86_64 (build.sh), Cortex-M7 and AArch64 (qemu.sh), kept in
+# Bit-identical across machines: compares the reply bytes (stage timings cleared) and the digest of
+# the merged correspondences (every classifier probability, bit for bit) that the firmware images
+# printed on x86_64 (build.sh), Cortex-M7 and AArch64 (qemu.sh), kept in
 # firmware/target/<board>.log, with the host's, firmware/data/reply.hex (written by
 # `cargo run --release -p gomatch-sim -- firmware-reply --out firmware/data/reply.hex`).
 #
@@ -19,7 +20,7 @@ if [ ! -f ../models/gomatch-int8.bin ]; then
   exit 0
 fi
 
-hex_digits=$(grep -o '[0-9a-f]*$' data/reply.hex | tr -d '\n' | wc -c)
+hex_digits=$(grep '^reply bytes' data/reply.hex | grep -o '[0-9a-f]*$' | tr -d '\n' | wc -c)
 failed=0
 for board in "${boards[@]}"; do
   log="target/$board.log"
@@ -29,8 +30,8 @@ for board in "${boards[@]}"; do
     continue
   fi
   if diff -u --label "host (data/reply.hex)" --label "$board ($log)" \
-    data/reply.hex <(grep '^reply bytes' "$log"); then
-    echo "$board: reply bytes identical to the host's ($((hex_digits / 2)) bytes)"
+    data/reply.hex <(grep -E '^(reply bytes|correspondences digest)' "$log"); then
+    echo "$board: reply bytes ($((hex_digits / 2))) and correspondences digest identical to the host's"
   else
     echo "$board: reply bytes differ from the host's" >&2
     failed=1

@@ -28,6 +28,25 @@ impl Correspondence {
     };
 }
 
+/// FNV-1a (32 bits) of the correspondences' fields (keypoint, point, probability bits,
+/// view, inlier flag, little-endian): a fingerprint of the network's output that shows a
+/// one-ulp difference in any probability, for comparing runs across machines.
+pub fn digest(correspondences: &[Correspondence]) -> u32 {
+    let mut hash = 0x811c_9dc5u32;
+    for c in correspondences {
+        let fields = [
+            &c.keypoint.to_le_bytes()[..],
+            &c.point.to_le_bytes(),
+            &c.probability.to_bits().to_le_bytes(),
+            &[c.view, u8::from(c.inlier)],
+        ];
+        for &byte in fields.iter().flat_map(|f| f.iter()) {
+            hash = (hash ^ u32::from(byte)).wrapping_mul(0x0100_0193);
+        }
+    }
+    hash
+}
+
 /// Probability of a keypoint without an accepted match while the views are matched. A
 /// match is accepted when its probability is above the model's (finite) threshold, so it
 /// is never `-inf`.
@@ -98,5 +117,24 @@ mod tests {
         let pair = |c: &Correspondence| (c.keypoint, c.point, c.view);
         assert_eq!(pair(&slots[0]), (1, 7, 1));
         assert_eq!(pair(&slots[1]), (3, 9, 2));
+    }
+
+    #[test]
+    fn the_digest_sees_a_one_ulp_change() {
+        let c = Correspondence {
+            keypoint: 3,
+            point: 7,
+            probability: 0.75,
+            view: 1,
+            inlier: true,
+        };
+        let next = Correspondence {
+            probability: f32::from_bits(0.75f32.to_bits() + 1),
+            ..c
+        };
+        assert_eq!(digest(&[]), 0x811c_9dc5);
+        assert_eq!(digest(&[c, c]), digest(&[c, c]));
+        assert_ne!(digest(&[c]), digest(&[next]));
+        assert_ne!(digest(&[c, next]), digest(&[next, c]));
     }
 }

@@ -184,6 +184,7 @@ fn run(
         return (exit_code::DATA_INVALID, None);
     };
     print_reply_bytes(&response);
+    print_digest(localizer.correspondences());
     match response.body {
         ResponseBody::Localized(reply) => {
             let code = match reply.outcome.map(|p| p.to_pose()) {
@@ -213,8 +214,8 @@ fn grade(pose: &Pose, truth: &Pose, scale: f64) -> i32 {
 /// Validates the blobs and serves the embedded request through the device loop; the reply
 /// frame is left in `io`.
 fn serve(
-    localizer: &'static mut Localizer<CAPACITY, f16>,
-    device: &'static mut Device<CAPACITY, RX>,
+    localizer: &mut Localizer<CAPACITY, f16>,
+    device: &mut Device<CAPACITY, RX>,
     clock: Option<&dyn Clock>,
     io: &mut Loopback,
 ) -> Result<(), i32> {
@@ -331,6 +332,14 @@ fn print_reply_bytes(response: &Response) {
             Hex(chunk)
         ));
     }
+}
+
+/// Prints the fingerprint of the merged correspondences ([`gomatch::merge::digest`]): the
+/// classifier's probabilities bit for bit, which the reply bytes carry only through the
+/// pose and the confidence; `firmware/cross_isa.sh` compares it with the host's.
+fn print_digest(correspondences: &[gomatch::merge::Correspondence]) {
+    let digest = gomatch::merge::digest(correspondences);
+    print(format_args!("correspondences digest: {digest:08x}"));
 }
 
 /// Lower-case hex digits of a byte string.

@@ -1,7 +1,8 @@
 //! `gomatch-sim firmware-reply`: the host's reply to the firmware image's embedded request
 //! (`firmware/data/`), as the image prints it: the postcard message with its stage timings
 //! cleared (the one field that depends on the machine), in numbered hex lines
-//! `reply bytes (timings cleared) i/n: ...`. `firmware/data/reply.hex` holds them, and
+//! `reply bytes (timings cleared) i/n: ...`, and the digest of the merged correspondences
+//! ([`gomatch::merge::digest`]). `firmware/data/reply.hex` holds them, and
 //! `firmware/cross_isa.sh` compares each board's lines with it byte for byte.
 
 use std::path::{Path, PathBuf};
@@ -10,7 +11,7 @@ use std::sync::Mutex;
 use anyhow::{bail, Context};
 use clap::Parser;
 use gomatch::link::{self, Device, NoPin, Response, ResponseBody, Served, Service};
-use gomatch::Localizer;
+use gomatch::{merge, Localizer};
 use half::f16;
 
 use crate::firmware_data::FIRMWARE_CAPACITY;
@@ -79,8 +80,20 @@ impl embedded_io::Write for Loopback<'_> {
 }
 
 /// Serves `frame` through the link's device loop with no clock, as the firmware image does,
-/// and returns the decoded reply.
+/// and returns the decoded reply and the digest of the merged correspondences.
 fn serve<const N: usize, const RX: usize>(
+    localizer: &mut Localizer<N, f16>,
+    device: &mut Device<N, RX>,
+    model: &[u8],
+    map: &[u8],
+    frame: &[u8],
+) -> anyhow::Result<(Response, u32)> {
+    let response = answer(localizer, device, model, map, frame)?;
+    Ok((response, merge::digest(localizer.correspondences())))
+}
+
+/// The decoded reply of the device loop to `frame`.
+fn answer<const N: usize, const RX: usize>(
     localizer: &mut Localizer<N, f16>,
     device: &mut Device<N, RX>,
     model: &[u8],
@@ -100,15 +113,24 @@ fn serve<const N: usize, const RX: usize>(
     link::decode_frame(&mut io.reply).map_err(|e| anyhow::anyhow!("reply frame: {e:?}"))
 }
 
-/// The reply's postcard bytes with the stage timings cleared, for a localizer of
-/// `capacity` keypoints (256 or 1024) and `f16` Sinkhorn storage, as the images use.
+/// What the firmware image prints of its query, the host's way.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FirmwareReply {
+    /// The reply's postcard bytes with the stage timings cleared.
+    pub bytes: Vec<u8>,
+    /// [`merge::digest`] of the merged correspondences.
+    pub digest: u32,
+}
+
+/// The reply for a localizer of `capacity` keypoints (256 or 1024) and `f16` Sinkhorn
+/// storage, as the images use.
 pub fn firmware_reply(
     model: &[u8],
     map: &[u8],
     frame: &[u8],
     capacity: usize,
-) -> anyhow::Result<Vec<u8>> {
-    let mut response = match capacity {
+) -> anyhow::Result<FirmwareReply> {
+    let (mut response, digest) = match capacity {
         FIRMWARE_CAPACITY => {
             let mut guard = SMALL.lock().unwrap_or_else(|e| e.into_inner());
             let (localizer, device) = &mut *guard;
@@ -126,20 +148,27 @@ pub fn firmware_reply(
     }
     let mut buffer = [0u8; link::MAX_RESPONSE_LEN];
     let bytes = postcard::to_slice(&response, &mut buffer).context("re-encoding the reply")?;
-    Ok(bytes.to_vec())
+    Ok(FirmwareReply {
+        bytes: bytes.to_vec(),
+        digest,
+    })
 }
 
-/// The numbered hex lines the firmware image prints for `bytes`, each ending with a newline.
-pub fn reply_lines(bytes: &[u8]) -> String {
-    let lines = bytes.len().div_ceil(BYTES_PER_LINE);
-    bytes
+/// The lines the firmware image prints for its reply, each ending with a newline: the
+/// numbered hex lines of the bytes, then the correspondences' digest.
+pub fn reply_lines(reply: &FirmwareReply) -> String {
+    let lines = reply.bytes.len().div_ceil(BYTES_PER_LINE);
+    let mut text: String = reply
+        .bytes
         .chunks(BYTES_PER_LINE)
         .enumerate()
         .map(|(i, chunk)| {
             let hex: String = chunk.iter().map(|b| format!("{b:02x}")).collect();
             format!("reply bytes (timings cleared) {}/{lines}: {hex}\n", i + 1)
         })
-        .collect()
+        .collect();
+    text += &format!("correspondences digest: {:08x}\n", reply.digest);
+    text
 }
 
 /// The reply to the request in `data` (`map.bin`, `query.frame`) with `model`.
@@ -147,7 +176,7 @@ pub fn firmware_reply_from_files(
     data: &Path,
     model: &Path,
     capacity: usize,
-) -> anyhow::Result<Vec<u8>> {
+) -> anyhow::Result<FirmwareReply> {
     let read = |path: &Path| std::fs::read(path).with_context(|| format!("{}", path.display()));
     firmware_reply(
         &read(model)?,
@@ -159,8 +188,8 @@ pub fn firmware_reply_from_files(
 
 /// Runs `gomatch-sim firmware-reply`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
-    let bytes = firmware_reply_from_files(&args.data, &args.model, args.capacity)?;
-    let lines = reply_lines(&bytes);
+    let reply = firmware_reply_from_files(&args.data, &args.model, args.capacity)?;
+    let lines = reply_lines(&reply);
     print!("{lines}");
     if let Some(out) = &args.out {
         std::fs::write(out, &lines).with_context(|| format!("writing {}", out.display()))?;

@@ -143,7 +143,8 @@ fn firmware_data_regenerates_the_committed_files() {
 }
 
 /// The host's reply to the firmware's embedded request, with the shipped int8 model and
-/// `f16` Sinkhorn storage, is the committed `firmware/data/reply.hex` byte for byte at both
+/// `f16` Sinkhorn storage, and the digest of its merged correspondences, are the committed
+/// `firmware/data/reply.hex` byte for byte at both
 /// capacities the images use (256: Cortex-M7 and x86_64; 1024: AArch64), and it localizes.
 #[test]
 fn firmware_reply_matches_the_committed_hex() {
@@ -152,9 +153,10 @@ fn firmware_reply_matches_the_committed_hex() {
     let model = root.join("models/gomatch-int8.bin");
     let committed = std::fs::read_to_string(data.join("reply.hex")).expect("reply.hex");
     for capacity in [FIRMWARE_CAPACITY, AARCH64_CAPACITY] {
-        let bytes = firmware_reply_from_files(&data, &model, capacity).expect("served");
-        assert_eq!(reply_lines(&bytes), committed, "capacity {capacity}");
-        let (response, []) = postcard::take_from_bytes::<link::Response>(&bytes).expect("decodes")
+        let reply = firmware_reply_from_files(&data, &model, capacity).expect("served");
+        assert_eq!(reply_lines(&reply), committed, "capacity {capacity}");
+        let (response, []) =
+            postcard::take_from_bytes::<link::Response>(&reply.bytes).expect("decodes")
         else {
             panic!("trailing bytes");
         };
