@@ -88,29 +88,19 @@ fn serve<const N: usize, const RX: usize>(
     map: &[u8],
     frame: &[u8],
 ) -> anyhow::Result<(Response, u32)> {
-    let response = answer(localizer, device, model, map, frame)?;
-    Ok((response, merge::digest(localizer.correspondences())))
-}
-
-/// The decoded reply of the device loop to `frame`.
-fn answer<const N: usize, const RX: usize>(
-    localizer: &mut Localizer<N, f16>,
-    device: &mut Device<N, RX>,
-    model: &[u8],
-    map: &[u8],
-    frame: &[u8],
-) -> anyhow::Result<Response> {
-    let mut service = Service::new(localizer, model, map, NoPin)
-        .map_err(|e| anyhow::anyhow!("model or map: {e}"))?;
     let mut io = Loopback {
         request: frame,
         reply: Vec::new(),
     };
+    let mut service = Service::new(&mut *localizer, model, map, NoPin)
+        .map_err(|e| anyhow::anyhow!("model or map: {e}"))?;
     match device.serve(&mut io, &mut service) {
         Ok(Served::Answered { .. }) => {}
         other => bail!("the request was not answered: {other:?}"),
     }
-    link::decode_frame(&mut io.reply).map_err(|e| anyhow::anyhow!("reply frame: {e:?}"))
+    let response =
+        link::decode_frame(&mut io.reply).map_err(|e| anyhow::anyhow!("reply frame: {e:?}"))?;
+    Ok((response, merge::digest(localizer.correspondences())))
 }
 
 /// What the firmware image prints of its query, the host's way.
