@@ -19,11 +19,11 @@ use gomatch::{Camera, Localizer, LocalizerConfig, Map, Model, Pose, Query, ViewS
 use gomatch_sim::scene::Scene;
 
 /// Keypoint capacity of the localizer under test.
-pub const CAPACITY: usize = 64;
+pub const CAPACITY: usize = 16;
 const RX: usize = link::rx_frame_len(CAPACITY);
 /// RANSAC samples per localization: few, so that an execution stays short (random
 /// weights give no good matches, and the default 10,000 samples would dominate).
-const RANSAC_ITERATIONS: u32 = 64;
+const RANSAC_ITERATIONS: u32 = 16;
 /// The fixture's model: [`ModelConfig::TINY`] with few Sinkhorn iterations, which
 /// otherwise take most of an execution.
 const FUZZ_MODEL: ModelConfig = ModelConfig {
@@ -34,7 +34,7 @@ const FUZZ_MODEL: ModelConfig = ModelConfig {
 pub const FIXTURE_POINTS: usize = 24;
 /// Keypoints of the fixture's query (the `localize` target draws its own, up to
 /// `CAPACITY + 2`).
-const FIXTURE_KEYPOINTS: usize = 16;
+const FIXTURE_KEYPOINTS: usize = 10;
 /// Ids of the requests sent after the noise in [`device_link`].
 const PROBE_IDS: [u32; 3] = [0xF00D_0001, 0xF00D_0002, 0xF00D_0003];
 

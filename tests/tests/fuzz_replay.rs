@@ -274,7 +274,7 @@ fn seeds() -> Vec<(&'static str, &'static str, Vec<u8>)> {
         (
             "localize",
             "opencv-near-prior",
-            localize_input(4, &opencv, 0x82, &pixels[..40]),
+            localize_input(4, &opencv, 0x82, &pixels[..bodies::CAPACITY - 4]),
         ),
         (
             "localize",
