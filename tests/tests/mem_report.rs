@@ -3,16 +3,18 @@
 //! rows that localize need the reference fixture weights (SKIPPED without `shared/`).
 
 use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
 
 use gomatch::link::{rx_frame_len, Device};
 use gomatch::view_features::blob_len;
 use gomatch::weights::Precision;
 use gomatch::Localizer;
-use gomatch_tools::convert::PrecisionArg;
+use gomatch_tools::convert::{convert_with, Options, PrecisionArg};
 use gomatch_tools::mem_report::{
     budget_violations, human_bytes, markdown, measure, report, Args, CountingAllocator, Row,
     Sinkhorn, BUILTIN_MAP,
 };
+use gomatch_tools::quantize::Rounding;
 use gomatch_tools::view_features::view_bearings;
 use half::f16;
 
@@ -28,6 +30,23 @@ fn fixture_weights() -> Option<PathBuf> {
         println!("SKIPPED: {} is absent", path.display());
         None
     }
+}
+
+/// The fixture weights as an int8 blob file, rounded to nearest (the calibrated
+/// conversion takes about 40 s; `memory_goals_hold` runs it through `mem-report`), once
+/// per test process.
+fn fixture_int8() -> Option<&'static (PathBuf, Vec<u8>)> {
+    static BLOB: OnceLock<Option<(PathBuf, Vec<u8>)>> = OnceLock::new();
+    BLOB.get_or_init(|| {
+        let checkpoint = std::fs::read(fixture_weights()?).expect("reads");
+        let mut options = Options::new(Precision::Int8);
+        options.rounding = Rounding::Nearest;
+        let (blob, _) = convert_with(&checkpoint, &options).expect("converts");
+        let path = Path::new(env!("CARGO_TARGET_TMPDIR")).join("mem-report-fixture-int8.bin");
+        std::fs::write(&path, &blob).expect("writes");
+        Some((path, blob))
+    })
+    .as_ref()
 }
 
 fn args(capacity: &[usize], views: &[usize], sinkhorn: &[Sinkhorn], model: PathBuf) -> Args {
@@ -73,19 +92,16 @@ fn the_stack_painter_finds_a_known_frame_and_the_heap_counter_counts() {
 /// built-in map, the heap untouched.
 #[test]
 fn rows_agree_with_the_types_and_the_blobs() {
-    let Some(weights) = fixture_weights() else {
+    let Some((blob, int8)) = fixture_int8() else {
         return;
     };
     let report = report(&args(
         &[128, 256],
         &[1],
         &[Sinkhorn::F32, Sinkhorn::F16],
-        weights.clone(),
+        blob.clone(),
     ))
     .expect("report");
-    let checkpoint = std::fs::read(&weights).expect("reads");
-    let (int8, _) =
-        gomatch_tools::convert::convert(&checkpoint, Precision::Int8).expect("converts");
     let map = std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("../firmware/data/map.bin"))
         .expect("firmware map");
     assert_eq!(BUILTIN_MAP, &map[..]);
@@ -192,14 +208,14 @@ fn memory_goals_hold() {
 /// A value given twice is measured once: no duplicate rows.
 #[test]
 fn repeated_values_give_one_row() {
-    let Some(weights) = fixture_weights() else {
+    let Some((blob, _)) = fixture_int8() else {
         return;
     };
     let report = report(&args(
         &[128, 128],
         &[1, 1],
         &[Sinkhorn::F16, Sinkhorn::F16],
-        weights,
+        blob.clone(),
     ))
     .expect("report");
     assert_eq!(report.rows.len(), 1, "{:?}", report.rows);
