@@ -27,7 +27,7 @@ use serde::{Deserialize, Serialize};
 use crate::camera::Camera;
 use crate::error::{Error, Result};
 use crate::merge::Correspondence;
-use crate::pose::Pose;
+use crate::pose::{camera_bearing, Pose};
 
 /// Number of features of [`Evidence::features`].
 pub const FEATURES: usize = 9;
@@ -196,11 +196,13 @@ pub(crate) fn gather(
         .iter()
         .zip(support.inliers)
         .zip(support.bearings.iter().zip(support.points));
-    for (index, ((c, &inlier), (bearing, point))) in rows.enumerate() {
+    for ((c, &inlier), (bearing, point)) in rows {
         evidence.merged += 1;
-        let world = nalgebra::Vector3::new(point[0], point[1], point[2]);
-        let projected = support.pose.bearing(&world, index);
-        if projected.is_ok_and(|b| inside(&field, b)) {
+        let in_camera = support
+            .pose
+            .transform(&nalgebra::Vector3::new(point[0], point[1], point[2]));
+        let projected = camera_bearing(&in_camera);
+        if projected.is_some_and(|b| inside(&field, b)) {
             evidence.in_view += 1;
         }
         let (dx, dy) = projected.map_or((f64::INFINITY, 0.0), |b| {
@@ -213,7 +215,7 @@ pub(crate) fn gather(
             continue;
         };
         evidence.inliers += 1;
-        depth += support.pose.transform(&world).z;
+        depth += in_camera.z;
         probability += c.probability;
         views |= 1 << (c.view % 32);
         let cell = |v: f32, size: f32| ((v / size * GRID as f32) as u32).min(GRID - 1);

@@ -153,12 +153,17 @@ impl Pose {
     /// This is the bare projection: whether a scene point's bearing is meaningful (not at
     /// the camera centre, not far off axis) is [`ProjectionRule`]'s call.
     pub fn bearing(&self, x_world: &Vector3<f64>, index: usize) -> Result<[f64; 2]> {
-        let p = self.transform(x_world);
-        if p.z <= 0.0 || !p.z.is_finite() || !p.x.is_finite() || !p.y.is_finite() {
-            return Err(Error::PointBehindCamera { index });
-        }
-        Ok([p.x / p.z, p.y / p.z])
+        camera_bearing(&self.transform(x_world)).ok_or(Error::PointBehindCamera { index })
     }
+}
+
+/// The bearing `(x / z, y / z)` of a point in camera coordinates; `None` when it is not
+/// in front of the camera or not finite.
+pub fn camera_bearing(p: &Vector3<f64>) -> Option<[f64; 2]> {
+    if p.z <= 0.0 || !p.z.is_finite() || !p.x.is_finite() || !p.y.is_finite() {
+        return None;
+    }
+    Some([p.x / p.z, p.y / p.z])
 }
 
 /// Largest deviation of `R^T R` from the identity, per entry, that [`Pose::check`]
