@@ -81,39 +81,42 @@ impl Scores {
         }
     }
 
-    /// `accepted, wrong (share), recall` for a table cell.
+    /// Right poses accepted.
+    fn kept(&self) -> usize {
+        self.accepted - self.accepted_wrong
+    }
+
+    /// `accepted, wrong (share), recall` for a table cell (0.0 % of nothing).
     fn brief(&self) -> String {
-        let kept = self.accepted - self.accepted_wrong;
-        let share = |a: usize, b: usize| 100.0 * a as f64 / b.max(1) as f64;
+        let share = |a, b| percent(a, b).unwrap_or(0.0);
         format!(
             "{}, {} ({:.1} %), {:.1} %",
             self.accepted,
             self.accepted_wrong,
             share(self.accepted_wrong, self.accepted),
-            share(kept, self.right)
+            share(self.kept(), self.right)
         )
     }
 
     fn describe(&self) -> String {
-        let kept = self.accepted - self.accepted_wrong;
-        let percent = |a: usize, b: usize| {
-            if b == 0 {
-                "-".to_string()
-            } else {
-                format!("{:.1} %", 100.0 * a as f64 / b as f64)
-            }
-        };
+        let kept = self.kept();
+        let share = |a, b| percent(a, b).map_or("-".to_string(), |p| format!("{p:.1} %"));
         format!(
             "{} candidates ({} right): {} accepted, {} wrong (precision {}), recall {} ({kept} of {})",
             self.candidates,
             self.right,
             self.accepted,
             self.accepted_wrong,
-            percent(kept, self.accepted),
-            percent(kept, self.right),
+            share(kept, self.accepted),
+            share(kept, self.right),
             self.right
         )
     }
+}
+
+/// `100 a / b`, `None` when `b` is 0.
+fn percent(a: usize, b: usize) -> Option<f64> {
+    (b > 0).then(|| 100.0 * a as f64 / b as f64)
 }
 
 /// The written file: the rule (read by `eval --acceptance`) and how it was obtained.
