@@ -9,6 +9,7 @@
 //! an online softmax, so no `N x N x heads` score buffer exists.
 
 use crate::limits::{MAX_FEATURE_DIM, MAX_HEADS, MAX_KNN};
+use crate::nn::blocking;
 use crate::nn::dispatch::{with_fma, Fma, Kernel};
 use crate::nn::linear::{accumulate, chunk_rows, larger, store, store_point_major};
 use crate::nn::{exp, instance_norm, leaky_relu, linear, relu, Input, Moments, StatSum, ROW_BLOCK};
@@ -359,23 +360,12 @@ struct AttentionShape {
     ns: usize,
 }
 
-/// Queries attended together: each key and value loaded serves all of them (8 x 8 score
-/// accumulators: half of the 16 AVX2 vector registers; 16 KiB of score tiles on the stack).
-/// Grouping queries changes no bit.
-#[cfg(not(target_arch = "arm"))]
-const QUERY_BLOCK: usize = 8;
-/// Queries attended together on Cortex-M: 4 x 4 score accumulators and four key lanes fit
-/// the FPU's 32 single-precision registers (8 x 8 spilled to the stack).
-#[cfg(target_arch = "arm")]
-const QUERY_BLOCK: usize = 6;
+/// Queries attended together (`nn::blocking`); grouping queries changes no bit.
+const QUERY_BLOCK: usize = blocking::ATTENTION_QUERIES;
 /// Source points per block of the online softmax (a multiple of [`LANES`]).
 const SOURCE_BLOCK: usize = 64;
-/// Width of the inner register tiles.
-#[cfg(not(target_arch = "arm"))]
-const LANES: usize = 8;
-/// Width of the inner register tiles on Cortex-M.
-#[cfg(target_arch = "arm")]
-const LANES: usize = 4;
+/// Width of the inner register tiles (`nn::blocking`).
+const LANES: usize = blocking::ATTENTION_LANES;
 
 /// Scaled dot-product attention (eq. 6-7) of the queries `q` (channel-major `d x nx`,
 /// replaced by the messages) over the keys `k` (channel-major `d x ns`) and values `v`

@@ -11,42 +11,22 @@
 //! at most [`MAX_INPUT`] = 512 products stay below 2^31. Integer sums do not depend on their
 //! order, so every block shape, vector width and instruction set gives the same bits.
 
+use super::blocking;
 use super::dispatch::Fma;
 use super::linear::{Input, WeightRows, MAX_INPUT};
 
 /// Points quantized together: one tile of the input, reused by every output row.
 pub const TILE: usize = 16;
-/// Output rows of one register block (x86-64 and AArch64: 4 rows x 16 points fill 8 AVX2 or
-/// 16 NEON accumulators).
-#[cfg(not(target_arch = "arm"))]
-const ROWS: usize = 4;
+/// Output rows of one register block ([`blocking`]).
+const ROWS: usize = blocking::INT8_ROWS;
 /// Points of one register block.
-#[cfg(not(target_arch = "arm"))]
-pub const POINTS: usize = 16;
-/// Output rows of one register block (Cortex-M: 2 rows x 2 points keep the four
-/// accumulators, two weight pairs and two activation pairs in the 13 core registers).
-#[cfg(target_arch = "arm")]
-const ROWS: usize = 2;
-/// Points of one register block.
-#[cfg(target_arch = "arm")]
-pub const POINTS: usize = 2;
+pub const POINTS: usize = blocking::INT8_POINTS;
 /// Largest quantized activation magnitude.
 const Q_MAX: f32 = 32767.0;
-/// Weight pairs one panel holds (32 KiB: each panel quantizes the layer input once, and the
-/// tiles' strided reads of a channel-major input miss the cache).
-#[cfg(not(target_arch = "arm"))]
-const PANEL_PAIRS: usize = 8192;
+/// Weight pairs one panel holds ([`blocking`]).
+const PANEL_PAIRS: usize = blocking::INT8_PANEL_PAIRS;
 /// Most rows of a panel.
-#[cfg(not(target_arch = "arm"))]
-const PANEL_MAX_ROWS: usize = 128;
-/// Weight pairs one panel holds on Cortex-M (64 KiB of stack: the widest layers, 384 and
-/// 256 inputs, take two panels instead of four; the 32 KiB panel cost the Cortex-M7
-/// firmware query 3.6 % more instructions).
-#[cfg(target_arch = "arm")]
-const PANEL_PAIRS: usize = 16384;
-/// Most rows of a panel on Cortex-M.
-#[cfg(target_arch = "arm")]
-const PANEL_MAX_ROWS: usize = 256;
+const PANEL_MAX_ROWS: usize = blocking::INT8_PANEL_MAX_ROWS;
 /// `1.5 * 2^23`: adding and subtracting it rounds to the nearest integer (ties to even).
 const ROUNDER: f32 = 12_582_912.0;
 

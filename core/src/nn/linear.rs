@@ -10,19 +10,15 @@
 //! BLAS takes its small-matrix path instead (bias first, separate multiply and add), and
 //! so does this kernel.
 
+use super::blocking;
 use super::dispatch::{with_fma, Fma, Kernel};
 use super::integer::linear_int8;
 use crate::weights::Linear;
 
 /// Output rows computed together.
 pub const ROW_BLOCK: usize = 4;
-/// Points computed together.
-#[cfg(not(target_arch = "arm"))]
-pub const COL_BLOCK: usize = 16;
-/// Points computed together on Cortex-M: the 4 x 4 accumulators, four inputs and four
-/// weights stay in the FPU's 32 single-precision registers (4 x 16 spilled to the stack).
-#[cfg(target_arch = "arm")]
-pub const COL_BLOCK: usize = 4;
+/// Points computed together ([`blocking`]).
+pub const COL_BLOCK: usize = blocking::LINEAR_POINTS;
 pub use crate::limits::MAX_INPUT;
 /// Fewest points of a set on which the reference's BLAS sums with fused multiply-adds
 /// and the bias last; on smaller sets it starts from the bias and multiplies and adds

@@ -7,6 +7,7 @@
 //! loops run over contiguous points, and each weight is decoded from the blob once per
 //! layer call (see [`mod@linear`]).
 
+pub mod blocking;
 pub mod dispatch;
 pub mod exp;
 pub mod fma;

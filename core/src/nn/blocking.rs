@@ -1,0 +1,53 @@
+//! Register-block and panel sizes of the kernels, one table per target: x86-64 and AArch64
+//! (16 vector registers of 8 or 4 lanes) and 32-bit Arm (Cortex-M: 13 core registers and
+//! 32 single-precision FPU registers). A size changes the speed, not the results: every
+//! output sums its terms in the same order whatever the block (the firmware's reply digest
+//! is compared across the three instruction sets).
+
+pub use sizes::*;
+
+#[cfg(not(target_arch = "arm"))]
+mod sizes {
+    /// f32 linear kernel, points per register block: 4 rows x 16 points keep eight AVX2
+    /// accumulators of FMA chains, enough to hide the FMA latency.
+    pub const LINEAR_POINTS: usize = 16;
+    /// Integer kernel, output rows per register block: 4 rows x 16 points fill 8 AVX2 or
+    /// 16 NEON accumulators.
+    pub const INT8_ROWS: usize = 4;
+    /// Integer kernel, points per register block.
+    pub const INT8_POINTS: usize = 16;
+    /// Integer kernel, weight pairs of one panel (32 KiB: each panel quantizes the layer
+    /// input once, and the tiles' strided reads of a channel-major input miss the cache).
+    pub const INT8_PANEL_PAIRS: usize = 8192;
+    /// Integer kernel, most rows of a panel.
+    pub const INT8_PANEL_MAX_ROWS: usize = 128;
+    /// Attention, queries attended together: each key and value loaded serves all of them
+    /// (8 x 8 score accumulators: half of the 16 AVX2 vector registers; 16 KiB of score
+    /// tiles on the stack).
+    pub const ATTENTION_QUERIES: usize = 8;
+    /// Attention, width of the inner register tiles.
+    pub const ATTENTION_LANES: usize = 8;
+}
+
+#[cfg(target_arch = "arm")]
+mod sizes {
+    /// f32 linear kernel, points per register block: the 4 x 4 accumulators, four inputs
+    /// and four weights stay in the FPU's 32 registers (4 x 16 spilled to the stack).
+    pub const LINEAR_POINTS: usize = 4;
+    /// Integer kernel, output rows per register block: 2 rows x 2 points keep the four
+    /// accumulators, two weight pairs and two activation pairs in the 13 core registers.
+    pub const INT8_ROWS: usize = 2;
+    /// Integer kernel, points per register block.
+    pub const INT8_POINTS: usize = 2;
+    /// Integer kernel, weight pairs of one panel (64 KiB of stack: the widest layers, 384
+    /// and 256 inputs, take two panels instead of four; the 32 KiB panel cost the
+    /// Cortex-M7 firmware query 3.6 % more instructions).
+    pub const INT8_PANEL_PAIRS: usize = 16384;
+    /// Integer kernel, most rows of a panel.
+    pub const INT8_PANEL_MAX_ROWS: usize = 256;
+    /// Attention, queries attended together: 6 x 4 score accumulators and four key lanes
+    /// fit the FPU's 32 registers (8 x 8 spilled to the stack).
+    pub const ATTENTION_QUERIES: usize = 6;
+    /// Attention, width of the inner register tiles.
+    pub const ATTENTION_LANES: usize = 4;
+}
