@@ -23,16 +23,7 @@ use gomatch_sim::map::build_map;
 use gomatch_sim::protocol::ProtocolParams;
 use gomatch_sim::synthetic::synthetic_scene;
 use gomatch_tools::convert::{convert_with, Options};
-use gomatch_tools::quantize::Rounding;
 use half::f16;
-
-/// `checkpoint` as an int8 blob rounded to nearest: these tests need an int8 model, not a
-/// calibrated one (the calibration takes about 40 s; `conformance.rs` checks it).
-fn int8_nearest(checkpoint: &[u8]) -> Vec<u8> {
-    let mut options = Options::new(Precision::Int8);
-    options.rounding = Rounding::Nearest;
-    convert_with(checkpoint, &options).expect("converts").0
-}
 
 fn fixture_model() -> Option<Vec<u8>> {
     let path = Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -41,7 +32,10 @@ fn fixture_model() -> Option<Vec<u8>> {
         println!("SKIPPED: {} is absent", path.display());
         return None;
     };
-    Some(int8_nearest(&checkpoint))
+    // Rounded to nearest: these tests need an int8 model, not a calibrated one
+    // (`conformance.rs` checks the calibrated conversion).
+    let options = Options::rounded_to_nearest(Precision::Int8);
+    Some(convert_with(&checkpoint, &options).expect("converts").0)
 }
 
 /// Noise (every byte value, a long run without zeros, stray delimiters), then two

@@ -20,7 +20,6 @@ use gomatch_sim::map::build_map;
 use gomatch_sim::protocol::{ProtocolParams, QuerySample};
 use gomatch_sim::synthetic::synthetic_scene;
 use gomatch_tools::convert::{convert_with, Options};
-use gomatch_tools::quantize::Rounding;
 use half::f16;
 
 /// Small capacity, so that the synthetic views (a few hundred to ~1500 points) overflow it.
@@ -38,10 +37,9 @@ fn model_blob() -> Option<&'static [u8]> {
             println!("SKIPPED: {} is absent", path.display());
             return None;
         };
-        // Rounded to nearest: these tests need an int8 model, not a calibrated one (the
-        // calibration takes about 40 s; `conformance.rs` checks it).
-        let mut options = Options::new(Precision::Int8);
-        options.rounding = Rounding::Nearest;
+        // Rounded to nearest: these tests need an int8 model, not a calibrated one
+        // (`conformance.rs` checks the calibrated conversion).
+        let options = Options::rounded_to_nearest(Precision::Int8);
         Some(convert_with(&checkpoint, &options).expect("converts").0)
     })
     .as_deref()

@@ -14,7 +14,6 @@ use gomatch_tools::mem_report::{
     budget_violations, human_bytes, markdown, measure, report, Args, CountingAllocator, Row,
     Sinkhorn, BUILTIN_MAP,
 };
-use gomatch_tools::quantize::Rounding;
 use gomatch_tools::view_features::view_bearings;
 use half::f16;
 
@@ -39,8 +38,7 @@ fn fixture_int8() -> Option<&'static (PathBuf, Vec<u8>)> {
     static BLOB: OnceLock<Option<(PathBuf, Vec<u8>)>> = OnceLock::new();
     BLOB.get_or_init(|| {
         let checkpoint = std::fs::read(fixture_weights()?).expect("reads");
-        let mut options = Options::new(Precision::Int8);
-        options.rounding = Rounding::Nearest;
+        let options = Options::rounded_to_nearest(Precision::Int8);
         let (blob, _) = convert_with(&checkpoint, &options).expect("converts");
         let path = Path::new(env!("CARGO_TARGET_TMPDIR")).join("mem-report-fixture-int8.bin");
         std::fs::write(&path, &blob).expect("writes");

@@ -117,6 +117,16 @@ impl Options {
         }
     }
 
+    /// The defaults for `precision` with every int8 tensor rounded to the nearest level:
+    /// no calibration pass (which takes about 40 s at d = 128), for callers that need an
+    /// int8 model rather than a calibrated one.
+    pub fn rounded_to_nearest(precision: Precision) -> Self {
+        Options {
+            rounding: Rounding::Nearest,
+            ..Options::new(precision)
+        }
+    }
+
     /// Storage precision of the tensor named `name`.
     pub fn precision_of(&self, name: &str) -> Precision {
         if self.keep_f32.iter().any(|k| k == name) {
