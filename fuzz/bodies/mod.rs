@@ -36,7 +36,7 @@ pub const FIXTURE_POINTS: usize = 24;
 /// `CAPACITY + 2`).
 const FIXTURE_KEYPOINTS: usize = 10;
 /// Ids of the requests sent after the noise in [`device_link`].
-const PROBE_IDS: [u32; 3] = [0xF00D_0001, 0xF00D_0002, 0xF00D_0003];
+const PROBE_IDS: [u32; 2] = [0xF00D_0001, 0xF00D_0002];
 
 /// The body of a target: runs one input.
 pub type Body = fn(&[u8]);
@@ -94,8 +94,9 @@ pub fn fixture() -> &'static Fixture {
     })
 }
 
-/// `[0]` + frame of each probe request: the info, a localization by image ids and one
-/// near a prior.
+/// `[0]` + frame of each probe request: the info and a localization near a prior (one
+/// view, so that an execution stays short; the seeds carry a localization by image ids
+/// in the noise).
 fn probe_frames(camera: Camera, pixels: &[[f32; 2]]) -> Vec<u8> {
     let mut keypoints = vec![0u8; link::KEYPOINT_BYTES * pixels.len()];
     link::encode_keypoints(pixels, &mut keypoints).expect("fits");
@@ -108,14 +109,9 @@ fn probe_frames(camera: Camera, pixels: &[[f32; 2]]) -> Vec<u8> {
         RequestBody::Localize(LocalizeRequest {
             camera,
             keypoints: &keypoints,
-            views: Views::ImageIds(heapless::Vec::from_slice(&[10, 20]).expect("2 ids")),
-        }),
-        RequestBody::Localize(LocalizeRequest {
-            camera,
-            keypoints: &keypoints,
             views: Views::NearPrior {
                 prior: link::WirePose::from(&prior),
-                k: 2,
+                k: 1,
                 max_angle_deg: 30.0,
             },
         }),

@@ -10,7 +10,7 @@ mod bodies;
 
 use std::path::{Path, PathBuf};
 
-use gomatch::link::{self, encode_frame, Request, RequestBody};
+use gomatch::link::{self, encode_frame, LocalizeRequest, Request, RequestBody, Views};
 use gomatch::{Map, Model};
 use gomatch_sim::scene::Scene;
 use gomatch_sim::tiny::{tiny_query, tiny_scene, tiny_scene_txt};
@@ -227,6 +227,17 @@ fn seeds() -> Vec<(&'static str, &'static str, Vec<u8>)> {
     let info = request_frame(1, RequestBody::Info);
     let mut cut = request_frame(2, RequestBody::Info);
     cut.truncate(cut.len() - 2);
+    let fixture_pixels = &fixture.pixels;
+    let mut keypoints = vec![0u8; link::KEYPOINT_BYTES * fixture_pixels.len()];
+    link::encode_keypoints(fixture_pixels, &mut keypoints).expect("fits");
+    let by_image_ids = request_frame(
+        3,
+        RequestBody::Localize(LocalizeRequest {
+            camera: fixture.camera,
+            keypoints: &keypoints,
+            views: Views::ImageIds(heapless::Vec::from_slice(&[10, 20]).expect("2 ids")),
+        }),
+    );
     let pinhole = [500.0, 320.0, 240.0];
     let opencv = [500.0, 510.0, 320.0, 240.0, -0.1, 0.01, 1e-3, -1e-3];
     vec![
@@ -250,6 +261,7 @@ fn seeds() -> Vec<(&'static str, &'static str, Vec<u8>)> {
         ("device_link", "info-frame", info.clone()),
         ("device_link", "cut-frame", cut),
         ("device_link", "every-byte", (0..=255u8).collect()),
+        ("device_link", "localize-image-ids", by_image_ids),
         (
             "colmap_bin",
             "tiny",
