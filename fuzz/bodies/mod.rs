@@ -42,7 +42,7 @@ const PROBE_IDS: [u32; 2] = [0xF00D_0001, 0xF00D_0002];
 pub type Body = fn(&[u8]);
 
 /// Every target: its name (a folder under `fuzz/seeds/` and `fuzz/regressions/`) and body.
-pub const TARGETS: [(&str, Body); 9] = [
+pub const TARGETS: [(&str, Body); 10] = [
     ("model_blob", model_blob),
     ("map_blob", map_blob),
     ("view_features", view_features),
@@ -51,6 +51,7 @@ pub const TARGETS: [(&str, Body); 9] = [
     ("colmap_txt", colmap_txt),
     ("bal", bal),
     ("bundler", bundler),
+    ("opensfm", opensfm),
     ("localize", localize),
 ];
 
@@ -334,14 +335,17 @@ fn visit_map(map: &Map<'_>) {
     }
 }
 
-/// Splits `data` at the two little-endian `u16` lengths it starts with into three files.
-fn three_files(data: &[u8]) -> Option<[&[u8]; 3]> {
-    let (lens, rest) = data.split_at_checked(4)?;
-    let first = usize::from(u16::from_le_bytes([lens[0], lens[1]]));
-    let second = usize::from(u16::from_le_bytes([lens[2], lens[3]]));
-    let (a, rest) = rest.split_at_checked(first.min(rest.len()))?;
-    let (b, c) = rest.split_at_checked(second.min(rest.len()))?;
-    Some([a, b, c])
+/// Splits `data` into `N` files at the `N - 1` little-endian `u16` lengths it starts with
+/// (the last file takes the rest).
+fn files<const N: usize>(data: &[u8]) -> Option<[&[u8]; N]> {
+    let (lens, mut rest) = data.split_at_checked(2 * (N - 1))?;
+    let mut out = [&[][..]; N];
+    for (file, len) in out.iter_mut().zip(lens.chunks_exact(2)) {
+        let len = usize::from(u16::from_le_bytes([len[0], len[1]]));
+        (*file, rest) = rest.split_at(len.min(rest.len()));
+    }
+    out[N - 1] = rest;
+    Some(out)
 }
 
 /// A scene read by a reader: validated, built into a map, and the map read back (it
@@ -358,10 +362,10 @@ fn check_scene(scene: &Scene) {
 }
 
 /// The COLMAP binary readers: `cameras.bin`, `images.bin`, `points3D.bin` split by
-/// [`three_files`]; a scene of all three is checked.
+/// [`files`]; a scene of all three is checked.
 pub fn colmap_bin(data: &[u8]) {
     use gomatch_sim::colmap::{parse_cameras_bin, parse_images_bin, parse_points_bin};
-    let Some([cameras, images, points]) = three_files(data) else {
+    let Some([cameras, images, points]) = files(data) else {
         return;
     };
     let (Ok(cameras), Ok(images), Ok(points)) = (
@@ -382,7 +386,7 @@ pub fn colmap_bin(data: &[u8]) {
 /// The COLMAP text readers, as [`colmap_bin`] (invalid UTF-8 is replaced first).
 pub fn colmap_txt(data: &[u8]) {
     use gomatch_sim::colmap::{parse_cameras_txt, parse_images_txt, parse_points_txt};
-    let Some([cameras, images, points]) = three_files(data) else {
+    let Some([cameras, images, points]) = files(data) else {
         return;
     };
     let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
@@ -413,6 +417,18 @@ pub fn bal(data: &[u8]) {
 pub fn bundler(data: &[u8]) {
     let text = String::from_utf8_lossy(data);
     if let Ok(scene) = gomatch_sim::bundler::parse_bundler(&text, "fuzz".into()) {
+        check_scene(&scene);
+    }
+}
+
+/// The OpenSfM reader: `reconstruction.json` and `tracks.csv` split by [`files`] (invalid
+/// UTF-8 is replaced first); a scene it reads is checked.
+pub fn opensfm(data: &[u8]) {
+    let Some([json, csv]) = files(data) else {
+        return;
+    };
+    let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
+    if let Ok(scene) = gomatch_sim::opensfm::parse_opensfm(&text(json), &text(csv), "fuzz".into()) {
         check_scene(&scene);
     }
 }

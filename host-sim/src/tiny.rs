@@ -89,6 +89,42 @@ pub fn tiny_scene_txt(points: usize) -> [String; 3] {
     [cameras, images, points3d]
 }
 
+/// The scene of [`tiny_scene_txt`] as OpenSfM files: `reconstruction.json` and
+/// `tracks.csv` (`crate::opensfm`; shots `view10.jpg`, `view20.jpg`, one track per point,
+/// feature id = point id).
+pub fn tiny_scene_opensfm(points: usize) -> [String; 2] {
+    let size = CENTRE[0].max(CENTRE[1]) * 2.0;
+    let points = self::points(points);
+    let mut shots = Vec::new();
+    let mut tracks = String::from("OPENSFM_TRACKS_VERSION_v2\n");
+    for (image_id, x) in TINY_VIEWS.iter().zip([-0.3, 0.3]) {
+        let name = format!("view{image_id}.jpg");
+        shots.push(format!(
+            r#""{name}": {{"rotation": [0, 0, 0], "translation": [{}, 0, 0], "camera": "c"}}"#,
+            -x
+        ));
+        for (id, p) in points.iter().enumerate() {
+            let [u, v] = project(p, x);
+            let (nx, ny) = ((u - CENTRE[0]) / size, (v - CENTRE[1]) / size);
+            tracks += &format!("{name}\t{id}\t{id}\t{nx}\t{ny}\t0.01\t128\t128\t128\n");
+        }
+    }
+    let points_json: Vec<String> = points
+        .iter()
+        .enumerate()
+        .map(|(id, [x, y, z])| format!(r#""{id}": {{"coordinates": [{x}, {y}, {z}]}}"#))
+        .collect();
+    let reconstruction = format!(
+        r#"[{{"cameras": {{"c": {{"projection_type": "perspective", "width": {}, "height": {}, "focal": {}, "k1": 0, "k2": 0}}}}, "shots": {{{}}}, "points": {{{}}}}}]"#,
+        (CENTRE[0] * 2.0) as u32,
+        (CENTRE[1] * 2.0) as u32,
+        FOCAL / size,
+        shots.join(", "),
+        points_json.join(", ")
+    );
+    [reconstruction, tracks]
+}
+
 /// The scene of [`tiny_scene_txt`], read by the COLMAP text readers.
 pub fn tiny_scene(points: usize) -> anyhow::Result<Scene> {
     let [cameras, images, points] = tiny_scene_txt(points);
@@ -124,4 +160,35 @@ pub fn tiny_query(x: f64, count: usize) -> Vec<[f32; 2]> {
         .iter()
         .map(|p| project(p, x).map(|c| c as f32))
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::opensfm::parse_opensfm;
+
+    /// The OpenSfM files hold the COLMAP text's scene: the same points, poses and pixels
+    /// (image ids are the shots' positions there).
+    #[test]
+    fn opensfm_files_hold_the_tiny_scene() {
+        let colmap = tiny_scene(12).unwrap();
+        let [json, csv] = tiny_scene_opensfm(12);
+        let opensfm = parse_opensfm(&json, &csv, "tiny".into()).unwrap();
+        opensfm.validate().unwrap();
+        assert_eq!(opensfm.points.len(), colmap.points.len());
+        for (id, point) in &colmap.points {
+            assert!((opensfm.points[id].xyz - point.xyz).norm() < 1e-12);
+        }
+        for (index, image) in colmap.images.values().enumerate() {
+            let other = &opensfm.images[&u32::try_from(index).unwrap()];
+            assert!(other.pose.translation_error(&image.pose) < 1e-12);
+            assert!(other.pose.rotation_error_deg(&image.pose) < 1e-9);
+            assert_eq!(other.keypoints.len(), image.keypoints.len());
+            for (a, b) in other.keypoints.iter().zip(&image.keypoints) {
+                assert_eq!(a.point3d, b.point3d);
+                assert!((a.pixel[0] - b.pixel[0]).abs() < 1e-9);
+                assert!((a.pixel[1] - b.pixel[1]).abs() < 1e-9);
+            }
+        }
+    }
 }

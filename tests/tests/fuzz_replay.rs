@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use gomatch::link::{self, encode_frame, LocalizeRequest, Request, RequestBody, Views};
 use gomatch::{Map, Model};
 use gomatch_sim::scene::Scene;
-use gomatch_sim::tiny::{tiny_query, tiny_scene, tiny_scene_txt};
+use gomatch_sim::tiny::{tiny_query, tiny_scene, tiny_scene_opensfm, tiny_scene_txt};
 use gomatch_tools::view_features::build_view_features;
 use nalgebra::UnitQuaternion;
 
@@ -72,6 +72,18 @@ fn three_files(files: [&[u8]; 3]) -> Vec<u8> {
     for f in files {
         out.extend_from_slice(f);
     }
+    out
+}
+
+/// The `opensfm` target's layout: a `u16` length, then `reconstruction.json` and
+/// `tracks.csv`.
+fn two_files(files: [&[u8]; 2]) -> Vec<u8> {
+    let mut out = u16::try_from(files[0].len())
+        .expect("small file")
+        .to_le_bytes()
+        .to_vec();
+    out.extend_from_slice(files[0]);
+    out.extend_from_slice(files[1]);
     out
 }
 
@@ -222,6 +234,7 @@ fn seeds() -> Vec<(&'static str, &'static str, Vec<u8>)> {
     let scene = tiny_scene(bodies::FIXTURE_POINTS).expect("scene");
     let [cameras_txt, images_txt, points_txt] = tiny_scene_txt(bodies::FIXTURE_POINTS);
     let [cameras_bin, images_bin, points_bin] = colmap_bin(&scene);
+    let [opensfm_json, opensfm_csv] = tiny_scene_opensfm(bodies::FIXTURE_POINTS);
     let (bal, bundler) = bal_and_bundler();
     let pixels = &tiny_query(0.05, bodies::CAPACITY);
     let info = request_frame(1, RequestBody::Info);
@@ -278,6 +291,11 @@ fn seeds() -> Vec<(&'static str, &'static str, Vec<u8>)> {
         ),
         ("bal", "two-cameras", bal.into_bytes()),
         ("bundler", "two-cameras", bundler.into_bytes()),
+        (
+            "opensfm",
+            "tiny",
+            two_files([opensfm_json.as_bytes(), opensfm_csv.as_bytes()]),
+        ),
         (
             "localize",
             "pinhole-image-ids",
