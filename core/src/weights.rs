@@ -265,8 +265,25 @@ impl Width {
     }
 }
 
+/// What the network does with a tensor's output before anything else sees it, as far as
+/// an error in that output goes (supp. "Architecture Details"); the int8 calibration
+/// (`gomatch-tools`) forms each tensor's input moments from it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Downstream {
+    /// Used as it is: projections, the residual stream, the classifier's logit.
+    Direct,
+    /// An instance norm follows, directly or through the next linear layer, so an error
+    /// that is constant over the set vanishes.
+    Norm,
+    /// The centre half of an EdgeConv: with the next tensor, its neighbour half, it acts on
+    /// the edge `[x_i; x_j - x_i]`, and an instance norm follows.
+    EdgeCentre,
+    /// The neighbour half of an EdgeConv (the tensor before it is the centre half).
+    EdgeNeighbour,
+}
+
 /// One tensor of a layer: its role (name in errors and reports), output and input
-/// channels, and whether it has a bias.
+/// channels, whether it has a bias, and what follows it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct LayerTensor {
     /// Role, e.g. `self.fuse`.
@@ -277,14 +294,23 @@ pub struct LayerTensor {
     pub cols: Width,
     /// Whether it carries a bias.
     pub bias: bool,
+    /// What follows its output.
+    pub downstream: Downstream,
 }
 
-const fn tensor(role: &'static str, rows: Width, cols: Width, bias: bool) -> LayerTensor {
+const fn tensor(
+    role: &'static str,
+    rows: Width,
+    cols: Width,
+    bias: bool,
+    downstream: Downstream,
+) -> LayerTensor {
     LayerTensor {
         role,
         rows,
         cols,
         bias,
+        downstream,
     }
 }
 
@@ -532,18 +558,21 @@ impl<'a> ResidualBlockWeights<'a> {
             Width::Features(1),
             Width::Features(1),
             true,
+            Downstream::Norm,
         ),
         tensor(
             "encoder.block.conv1",
             Width::Features(1),
             Width::Features(1),
             true,
+            Downstream::Norm,
         ),
         tensor(
             "encoder.block.conv2",
             Width::Features(1),
             Width::Features(1),
             true,
+            Downstream::Norm,
         ),
     ];
     /// A classifier block's tensors in blob order (c -> c, with bias).
@@ -553,18 +582,21 @@ impl<'a> ResidualBlockWeights<'a> {
             Width::Classifier(1),
             Width::Classifier(1),
             true,
+            Downstream::Norm,
         ),
         tensor(
             "classifier.block.conv1",
             Width::Classifier(1),
             Width::Classifier(1),
             true,
+            Downstream::Norm,
         ),
         tensor(
             "classifier.block.conv2",
             Width::Classifier(1),
             Width::Classifier(1),
             true,
+            Downstream::Norm,
         ),
     ];
 
@@ -611,6 +643,7 @@ impl EncoderWeights<'_> {
         Width::Features(1),
         Width::Fixed(2),
         true,
+        Downstream::Direct,
     )];
 }
 
@@ -628,26 +661,36 @@ impl<'a> SelfLayerWeights<'a> {
             Width::Features(1),
             Width::Features(1),
             false,
+            Downstream::EdgeCentre,
         ),
         tensor(
             "self.edge1_neighbour",
             Width::Features(1),
             Width::Features(1),
             false,
+            Downstream::EdgeNeighbour,
         ),
         tensor(
             "self.edge2_centre",
             Width::Features(2),
             Width::Features(1),
             false,
+            Downstream::EdgeCentre,
         ),
         tensor(
             "self.edge2_neighbour",
             Width::Features(2),
             Width::Features(1),
             false,
+            Downstream::EdgeNeighbour,
         ),
-        tensor("self.fuse", Width::Features(1), Width::Features(4), false),
+        tensor(
+            "self.fuse",
+            Width::Features(1),
+            Width::Features(4),
+            false,
+            Downstream::Norm,
+        ),
     ];
 
     fn slot(&mut self, part: usize) -> &mut Linear<'a> {
@@ -679,37 +722,71 @@ pub struct CrossLayerWeights<'a> {
 }
 
 impl<'a> CrossLayerWeights<'a> {
-    /// Part of [`Self::TENSORS`]: the query projection (key, value, merge follow).
+    /// Part of [`Self::TENSORS`]: the query projection.
     pub const QUERY: usize = 0;
-    /// Part of [`Self::TENSORS`]: the message MLP's hidden layer (its output follows).
+    /// Part of [`Self::TENSORS`]: the key projection.
+    pub const KEY: usize = 1;
+    /// Part of [`Self::TENSORS`]: the value projection.
+    pub const VALUE: usize = 2;
+    /// Part of [`Self::TENSORS`]: the merge of the heads.
+    pub const MERGE: usize = 3;
+    /// Part of [`Self::TENSORS`]: the message MLP's hidden layer.
     pub const MLP_HIDDEN: usize = 4;
+    /// Part of [`Self::TENSORS`]: the message MLP's output.
+    pub const MLP_OUT: usize = 5;
     /// Its tensors in blob order.
     pub const TENSORS: [LayerTensor; 6] = [
-        tensor("cross.query", Width::Features(1), Width::Features(1), true),
-        tensor("cross.key", Width::Features(1), Width::Features(1), true),
-        tensor("cross.value", Width::Features(1), Width::Features(1), true),
-        tensor("cross.merge", Width::Features(1), Width::Features(1), true),
+        tensor(
+            "cross.query",
+            Width::Features(1),
+            Width::Features(1),
+            true,
+            Downstream::Direct,
+        ),
+        tensor(
+            "cross.key",
+            Width::Features(1),
+            Width::Features(1),
+            true,
+            Downstream::Direct,
+        ),
+        tensor(
+            "cross.value",
+            Width::Features(1),
+            Width::Features(1),
+            true,
+            Downstream::Direct,
+        ),
+        tensor(
+            "cross.merge",
+            Width::Features(1),
+            Width::Features(1),
+            true,
+            Downstream::Direct,
+        ),
         tensor(
             "cross.mlp_hidden",
             Width::Features(2),
             Width::Features(2),
             false,
+            Downstream::Norm,
         ),
         tensor(
             "cross.mlp_out",
             Width::Features(1),
             Width::Features(2),
             true,
+            Downstream::Direct,
         ),
     ];
 
     fn slot(&mut self, part: usize) -> &mut Linear<'a> {
         match part {
-            0 => &mut self.query,
-            1 => &mut self.key,
-            2 => &mut self.value,
-            3 => &mut self.merge,
-            4 => &mut self.mlp_hidden,
+            Self::QUERY => &mut self.query,
+            Self::KEY => &mut self.key,
+            Self::VALUE => &mut self.value,
+            Self::MERGE => &mut self.merge,
+            Self::MLP_HIDDEN => &mut self.mlp_hidden,
             _ => &mut self.mlp_out,
         }
     }
@@ -735,6 +812,7 @@ impl ClassifierWeights<'_> {
         Width::Classifier(1),
         Width::Features(2),
         true,
+        Downstream::Direct,
     )];
     /// `conv_out` (c -> 1, with bias).
     pub const OUTPUT_TENSORS: [LayerTensor; 1] = [tensor(
@@ -742,6 +820,7 @@ impl ClassifierWeights<'_> {
         Width::Fixed(1),
         Width::Classifier(1),
         true,
+        Downstream::Direct,
     )];
 }
 
@@ -1065,6 +1144,34 @@ mod tests {
             Model::from_bytes(&flipped[..len]),
             Err(Error::BlobChecksum { .. })
         ));
+    }
+
+    /// EdgeConv halves come in (centre, neighbour) pairs of one section, of one shape.
+    #[test]
+    fn edge_halves_are_declared_in_pairs() {
+        for section in Section::ORDER {
+            let tensors = section.tensors();
+            for (part, t) in tensors.iter().enumerate() {
+                let next = tensors.get(part + 1);
+                let before = part.checked_sub(1).map(|p| tensors[p].downstream);
+                match t.downstream {
+                    Downstream::EdgeCentre => {
+                        let n = next.expect("a centre half has a neighbour half");
+                        assert_eq!(n.downstream, Downstream::EdgeNeighbour, "{}", t.role);
+                        assert_eq!((n.rows, n.cols), (t.rows, t.cols), "{}", t.role);
+                    }
+                    Downstream::EdgeNeighbour => {
+                        assert_eq!(before, Some(Downstream::EdgeCentre), "{}", t.role)
+                    }
+                    Downstream::Direct | Downstream::Norm => {}
+                }
+            }
+        }
+        let edges = SelfLayerWeights::TENSORS
+            .iter()
+            .filter(|t| t.downstream == Downstream::EdgeCentre)
+            .count();
+        assert_eq!(edges, 2, "two EdgeConv layers per self layer");
     }
 
     #[test]

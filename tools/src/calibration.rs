@@ -10,7 +10,10 @@
 //! removes any error that is constant over the set. The two halves of an EdgeConv layer
 //! act together on the edge `[x_i; x_j]`, so they share one joint moment matrix.
 
-use gomatch::weights::{tensor_index, CrossLayerWeights, ModelConfig, Section, SelfLayerWeights};
+use anyhow::Context;
+use gomatch::weights::{
+    locate, tensor_index, CrossLayerWeights, Downstream, ModelConfig, Section, SelfLayerWeights,
+};
 use gomatch::{Matcher, Model, Precision};
 use rand::seq::SliceRandom;
 use rand::{RngExt, SeedableRng};
@@ -631,8 +634,23 @@ impl Engine<'_> {
         }
     }
 
-    /// Fits the single tensor `index` on the inputs `xs`.
-    fn fit(&mut self, index: usize, xs: &[&Both], centred: bool) -> anyhow::Result<()> {
+    /// What follows tensor `index` in the network (the core's declaration).
+    fn downstream(&self, index: usize) -> anyhow::Result<Downstream> {
+        let slot = locate(&self.config, index).context("tensor index past the layout")?;
+        let tensor = slot.section.tensors()[slot.part];
+        Ok(tensor.downstream)
+    }
+
+    /// Fits the single tensor `index` on the inputs `xs`, centred over each set where an
+    /// instance norm follows it.
+    fn fit(&mut self, index: usize, xs: &[&Both]) -> anyhow::Result<()> {
+        let centred = match self.downstream(index)? {
+            Downstream::Direct => false,
+            Downstream::Norm => true,
+            edge => anyhow::bail!(
+                "tensor {index} is an EdgeConv half ({edge:?}): fit it as an edge pair"
+            ),
+        };
         let mut m = Moments::new(self.float[index].cols);
         for x in xs {
             m.add(x, centred);
@@ -642,6 +660,12 @@ impl Engine<'_> {
 
     /// Fits the EdgeConv pair `centre`, `centre + 1` on the edges of `xs`.
     fn fit_edges(&mut self, centre: usize, xs: &[Both], graphs: &[Graph]) -> anyhow::Result<()> {
+        let pair = (self.downstream(centre)?, self.downstream(centre + 1)?);
+        anyhow::ensure!(
+            pair == (Downstream::EdgeCentre, Downstream::EdgeNeighbour),
+            "tensors {centre}, {} are not an EdgeConv pair ({pair:?})",
+            centre + 1
+        );
         let mut m = Moments::new(self.float[centre].cols + self.float[centre + 1].cols);
         for (x, g) in xs.iter().zip(graphs) {
             m.add_edges(x, g);
@@ -769,7 +793,7 @@ impl Engine<'_> {
             })
             .collect();
         let input = self.index(Section::EncoderInput, 0, 0);
-        self.fit(input, &coords.iter().collect::<Vec<_>>(), false)?;
+        self.fit(input, &coords.iter().collect::<Vec<_>>())?;
         let x = coords.iter().map(|c| self.apply(input, c)).collect();
         self.residual_blocks(x, Section::EncoderBlock)
     }
@@ -778,14 +802,14 @@ impl Engine<'_> {
     fn residual_blocks(&mut self, mut x: Vec<Both>, section: Section) -> anyhow::Result<Vec<Both>> {
         for b in 0..section.repeats(&self.config) {
             let [preconv, conv1, conv2] = [0, 1, 2].map(|part| self.index(section, b, part));
-            self.fit(preconv, &x.iter().collect::<Vec<_>>(), true)?;
+            self.fit(preconv, &x.iter().collect::<Vec<_>>())?;
             let h0: Vec<Both> = x.iter().map(|x| self.apply(preconv, x)).collect();
-            self.fit(conv1, &h0.iter().collect::<Vec<_>>(), true)?;
+            self.fit(conv1, &h0.iter().collect::<Vec<_>>())?;
             let h: Vec<Both> = h0
                 .iter()
                 .map(|h0| self.apply(conv1, h0).map(Features::instance_norm))
                 .collect();
-            self.fit(conv2, &h.iter().collect::<Vec<_>>(), true)?;
+            self.fit(conv2, &h.iter().collect::<Vec<_>>())?;
             for (x, h) in x.iter_mut().zip(&h) {
                 let z = self
                     .apply(conv2, h)
@@ -818,7 +842,7 @@ impl Engine<'_> {
             .zip(&x2)
             .map(|((a, b), c)| Both::concat(&[a, b, c]))
             .collect();
-        self.fit(fuse, &cat.iter().collect::<Vec<_>>(), true)?;
+        self.fit(fuse, &cat.iter().collect::<Vec<_>>())?;
         Ok(cat
             .iter()
             .map(|c| {
@@ -851,9 +875,17 @@ impl Engine<'_> {
     /// tensors are fitted on the inputs of both calls; the second call's sources on the
     /// quantised path are the first call's outputs with the float cross layer.
     fn cross_layer(&mut self, x2: &[Both], x3: &[Both]) -> anyhow::Result<(Vec<Both>, Vec<Both>)> {
-        // Tensors base.. in the order of `CrossLayerWeights::TENSORS`: query, key, value,
-        // merge, mlp_hidden, mlp_out.
-        let base = self.index(Section::CrossLayer, 0, CrossLayerWeights::QUERY);
+        // The layer's tensors are consecutive, in the order of `CrossLayerWeights::TENSORS`.
+        let base = self.index(Section::CrossLayer, 0, 0);
+        let [query, key, value, merge, mlp_hidden, mlp_out] = [
+            CrossLayerWeights::QUERY,
+            CrossLayerWeights::KEY,
+            CrossLayerWeights::VALUE,
+            CrossLayerWeights::MERGE,
+            CrossLayerWeights::MLP_HIDDEN,
+            CrossLayerWeights::MLP_OUT,
+        ]
+        .map(|part| base + part);
         let heads = usize::from(self.config.heads);
         let float = &self.float[base..base + CrossLayerWeights::TENSORS.len()];
         let first: Vec<Both> = x2
@@ -866,17 +898,17 @@ impl Engine<'_> {
             .collect();
         let targets: Vec<&Both> = x2.iter().chain(x3).collect();
         let sources: Vec<&Both> = x3.iter().chain(&first).collect();
-        self.fit(base, &targets, false)?;
-        self.fit(base + 1, &sources, false)?;
-        self.fit(base + 2, &sources, false)?;
+        self.fit(query, &targets)?;
+        self.fit(key, &sources)?;
+        self.fit(value, &sources)?;
         let messages: Vec<Both> = targets
             .iter()
             .zip(&sources)
             .map(|(t, s)| {
                 let (q, k, v) = (
-                    self.apply(base, t),
-                    self.apply(base + 1, s),
-                    self.apply(base + 2, s),
+                    self.apply(query, t),
+                    self.apply(key, s),
+                    self.apply(value, s),
                 );
                 Both {
                     f: attention(heads, &q.f, &k.f, &v.f),
@@ -884,21 +916,21 @@ impl Engine<'_> {
                 }
             })
             .collect();
-        self.fit(base + 3, &messages.iter().collect::<Vec<_>>(), false)?;
+        self.fit(merge, &messages.iter().collect::<Vec<_>>())?;
         let cat: Vec<Both> = targets
             .iter()
             .zip(&messages)
-            .map(|(t, m)| Both::concat(&[t, &self.apply(base + 3, m)]))
+            .map(|(t, m)| Both::concat(&[t, &self.apply(merge, m)]))
             .collect();
-        self.fit(base + 4, &cat.iter().collect::<Vec<_>>(), true)?;
+        self.fit(mlp_hidden, &cat.iter().collect::<Vec<_>>())?;
         let hidden: Vec<Both> = cat
             .iter()
             .map(|c| {
-                self.apply(base + 4, c)
+                self.apply(mlp_hidden, c)
                     .map(|h| h.instance_norm().map(|v| v.max(0.0)))
             })
             .collect();
-        self.fit(base + 5, &hidden.iter().collect::<Vec<_>>(), false)?;
+        self.fit(mlp_out, &hidden.iter().collect::<Vec<_>>())?;
         let both = |x: &Both, src: &Both| -> Both {
             Both {
                 f: cross(
@@ -945,11 +977,11 @@ impl Engine<'_> {
             })
             .collect();
         let input = self.index(Section::ClassifierInput, 0, 0);
-        self.fit(input, &inputs.iter().collect::<Vec<_>>(), false)?;
+        self.fit(input, &inputs.iter().collect::<Vec<_>>())?;
         let x = inputs.iter().map(|x| self.apply(input, x)).collect();
         let x = self.residual_blocks(x, Section::ClassifierBlock)?;
         let output = self.index(Section::ClassifierOutput, 0, 0);
-        self.fit(output, &x.iter().collect::<Vec<_>>(), false)
+        self.fit(output, &x.iter().collect::<Vec<_>>())
     }
 }
 
@@ -1051,19 +1083,22 @@ fn knn_graph(points: &[[f32; 2]], knn: usize) -> Graph {
 }
 
 /// `x + MLP([x, merge(attention(q(x), k(src), v(src)))])` (supp. eq. 6-8) with the six
-/// cross tensors `t` (query, key, value, merge, mlp_hidden, mlp_out).
+/// cross layer's tensors `t` (in the order of `CrossLayerWeights::TENSORS`).
 fn cross(t: &[FloatLinear], heads: usize, x: &Features, src: &Features) -> Features {
     let message = attention(
         heads,
-        &linear(&t[0], x),
-        &linear(&t[1], src),
-        &linear(&t[2], src),
+        &linear(&t[CrossLayerWeights::QUERY], x),
+        &linear(&t[CrossLayerWeights::KEY], src),
+        &linear(&t[CrossLayerWeights::VALUE], src),
     );
-    let merged = linear(&t[3], &message);
-    let hidden = linear(&t[4], &Features::concat(&[x, &merged]))
-        .instance_norm()
-        .map(|v| v.max(0.0));
-    let update = linear(&t[5], &hidden);
+    let merged = linear(&t[CrossLayerWeights::MERGE], &message);
+    let hidden = linear(
+        &t[CrossLayerWeights::MLP_HIDDEN],
+        &Features::concat(&[x, &merged]),
+    )
+    .instance_norm()
+    .map(|v| v.max(0.0));
+    let update = linear(&t[CrossLayerWeights::MLP_OUT], &hidden);
     let mut out = x.clone();
     out.x.iter_mut().zip(&update.x).for_each(|(o, u)| *o += u);
     out
