@@ -386,6 +386,13 @@ pub struct TensorSlot {
     pub part: usize,
 }
 
+impl TensorSlot {
+    /// The declaration of the tensor in this slot.
+    pub fn tensor(self) -> Option<LayerTensor> {
+        self.section.tensors().get(self.part).copied()
+    }
+}
+
 /// The slot of tensor `index` (blob order), or `None` past the last one.
 pub fn locate(config: &ModelConfig, index: usize) -> Option<TensorSlot> {
     let mut i = index;
@@ -429,7 +436,7 @@ pub fn tensor_count(config: &ModelConfig) -> usize {
 /// the last one.
 pub fn tensor_spec(config: &ModelConfig, index: usize) -> Option<TensorSpec> {
     let slot = locate(config, index)?;
-    let t = slot.section.tensors().get(slot.part)?;
+    let t = slot.tensor()?;
     Some(spec(
         t.role,
         slot.instance,
