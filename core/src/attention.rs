@@ -12,7 +12,10 @@ use crate::limits::{MAX_FEATURE_DIM, MAX_HEADS, MAX_KNN};
 use crate::nn::blocking;
 use crate::nn::dispatch::{with_fma, Fma, Kernel};
 use crate::nn::linear::{accumulate, chunk_rows, larger, store, store_point_major};
-use crate::nn::{exp, instance_norm, leaky_relu, linear, relu, Input, Moments, StatSum, ROW_BLOCK};
+use crate::nn::{
+    exp, instance_norm, leaky_relu, linear, relu, Input, LayerInput, LayerTap, Moments, StatSum,
+    ROW_BLOCK,
+};
 use crate::weights::{CrossLayerWeights, Linear, SelfLayerWeights};
 
 /// Neighbour lists of a set: `graph[i][..k]` are the `k` nearest points of point `i`.
@@ -75,7 +78,7 @@ pub struct SelfScratch<'s> {
 }
 
 /// One EdgeConv self-attention layer (supp. eq. 4-5) on `x` (`d x n`), in place: the output
-/// replaces the descriptor.
+/// replaces the descriptor. Each layer's input goes to `tap`.
 pub fn self_layer(
     w: &SelfLayerWeights<'_>,
     graph: &[Neighbours],
@@ -83,6 +86,7 @@ pub fn self_layer(
     x: &mut [f32],
     n: usize,
     s: SelfScratch<'_>,
+    tap: &mut dyn LayerTap,
 ) {
     with_fma(SelfLayer {
         w,
@@ -91,6 +95,7 @@ pub fn self_layer(
         x,
         n,
         s,
+        tap,
     });
 }
 
@@ -102,6 +107,7 @@ struct SelfLayer<'k, 'w, 's> {
     x: &'k mut [f32],
     n: usize,
     s: SelfScratch<'s>,
+    tap: &'k mut dyn LayerTap,
 }
 
 impl Kernel<()> for SelfLayer<'_, '_, '_> {
@@ -114,12 +120,14 @@ impl Kernel<()> for SelfLayer<'_, '_, '_> {
             x,
             n,
             s,
+            tap,
         } = self;
-        self_layer_with(fma, w, graph, k, x, n, s);
+        self_layer_with(fma, w, graph, k, x, n, s, tap);
     }
 }
 
 /// [`self_layer`] with the given [`Fma`].
+#[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn self_layer_with<F: Fma>(
     fma: F,
@@ -129,30 +137,42 @@ fn self_layer_with<F: Fma>(
     x: &mut [f32],
     n: usize,
     s: SelfScratch<'_>,
+    tap: &mut dyn LayerTap,
 ) {
     let d = w.fuse.rows();
+    let edges = |points| LayerInput::Edges {
+        points,
+        graph: &graph[..n],
+        k,
+    };
+    let input = Input::one(x, d, n);
+    tap.layer_input(w.edge1_centre.tensor(), &edges(input));
     edge_conv(
         fma,
         &w.edge1_centre,
         &w.edge1_neighbour,
-        &Input::one(x, d, n),
+        &input,
         graph,
         k,
         s.x1,
         larger(s.spare, s.rows),
         s.maxima,
     );
+    let input = Input::one(s.x1, d, n);
+    tap.layer_input(w.edge2_centre.tensor(), &edges(input));
     edge_conv(
         fma,
         &w.edge2_centre,
         &w.edge2_neighbour,
-        &Input::one(s.x1, d, n),
+        &input,
         graph,
         k,
         s.x2,
         larger(s.spare, s.rows),
         s.maxima,
     );
+    let concatenation = Input::parts([&*x, &*s.x1, &*s.x2], [d, d, 2 * d], n);
+    tap.layer_input(w.fuse.tensor(), &LayerInput::Points(concatenation));
     let fused = larger(s.spare, s.fused);
     let block = (fused.len() / d.max(1)).clamp(1, n.max(1));
     let mut b0 = 0;
@@ -288,7 +308,9 @@ fn finish_edge_channel<F: Fma>(
 
 /// Multi-head cross attention with message MLP (supp. eq. 6-8), in place:
 /// `x += MLP([x, merge(attention(q(x), k(src), v(src)))])`. Channel `c` belongs to head
-/// `c % heads`. `pool` holds at least `3 x d x max(nx, ns)` values of scratch.
+/// `c % heads`. `pool` holds at least `3 x d x max(nx, ns)` values of scratch. Each layer's
+/// input goes to `tap`.
+#[allow(clippy::too_many_arguments)]
 pub fn cross_layer(
     w: &CrossLayerWeights<'_>,
     heads: usize,
@@ -297,6 +319,7 @@ pub fn cross_layer(
     src: &[f32],
     ns: usize,
     pool: &mut [f32],
+    tap: &mut dyn LayerTap,
 ) {
     let d = w.query.rows();
     let head_dim = d / heads.max(1);
@@ -305,11 +328,15 @@ pub fn cross_layer(
     {
         let (queries, keys) = front.split_at_mut(slot);
         let source = Input::one(src, d, ns);
+        let target = Input::one(x, d, nx);
+        tap.layer_input(w.query.tensor(), &LayerInput::Points(target));
+        tap.layer_input(w.key.tensor(), &LayerInput::Points(source));
+        tap.layer_input(w.value.tensor(), &LayerInput::Points(source));
         linear(&w.key, &source, 0..d, |r, i0, v| store(keys, ns, r, i0, v));
         linear(&w.value, &source, 0..d, |r, i0, v| {
             store_point_major(values, d, head_major(r, heads, head_dim), i0, v)
         });
-        linear(&w.query, &Input::one(x, d, nx), 0..d, |r, i0, v| {
+        linear(&w.query, &target, 0..d, |r, i0, v| {
             store(queries, nx, r, i0, v)
         });
         let shape = AttentionShape {
@@ -320,25 +347,28 @@ pub fn cross_layer(
         };
         attend(&shape, queries, keys, values);
         // Messages (now in the query slot), merged into the value slot.
-        linear(&w.merge, &Input::one(queries, d, nx), 0..d, |r, i0, v| {
+        let messages = Input::one(queries, d, nx);
+        tap.layer_input(w.merge.tensor(), &LayerInput::Points(messages));
+        linear(&w.merge, &messages, 0..d, |r, i0, v| {
             store(values, nx, r, i0, v)
         });
     }
     let hidden = front;
     let h = w.mlp_hidden.rows();
-    linear(
-        &w.mlp_hidden,
-        &Input::two((x, d), (values, d), nx),
-        0..h,
-        |r, i0, v| store(hidden, nx, r, i0, v),
-    );
+    let concatenation = Input::two((x, d), (values, d), nx);
+    tap.layer_input(w.mlp_hidden.tensor(), &LayerInput::Points(concatenation));
+    linear(&w.mlp_hidden, &concatenation, 0..h, |r, i0, v| {
+        store(hidden, nx, r, i0, v)
+    });
     for row in hidden[..h * nx].chunks_exact_mut(nx) {
         instance_norm(row);
         for v in row.iter_mut() {
             *v = relu(*v);
         }
     }
-    linear(&w.mlp_out, &Input::one(hidden, h, nx), 0..d, |r, i0, v| {
+    let rectified = Input::one(hidden, h, nx);
+    tap.layer_input(w.mlp_out.tensor(), &LayerInput::Points(rectified));
+    linear(&w.mlp_out, &rectified, 0..d, |r, i0, v| {
         accumulate(x, nx, r, i0, v)
     });
 }
@@ -792,7 +822,15 @@ mod tests {
                 fused: &mut fused,
                 spare,
             };
-            self_layer(&model.self_layers[0], &graph, k, &mut x, n, scratch);
+            self_layer(
+                &model.self_layers[0],
+                &graph,
+                k,
+                &mut x,
+                n,
+                scratch,
+                &mut (),
+            );
             x
         };
         let small = run(&mut []);

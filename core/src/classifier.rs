@@ -8,7 +8,7 @@
 //! descriptors.
 
 use crate::nn::linear::{store, ColumnSlice};
-use crate::nn::{linear, residual_block, Input};
+use crate::nn::{linear, residual_block, Input, LayerInput, LayerTap};
 use crate::sinkhorn::Match;
 use crate::weights::ClassifierWeights;
 
@@ -28,13 +28,15 @@ pub struct Descriptors<'s> {
 
 /// Sets `probability` of every match. `pool` holds at least `c x max(n2 + n3, 3, matches + 1)`
 /// values and `rows` at least `ROW_BLOCK x max(2, matches)`, both scratch. A single match is
-/// classified as two copies of itself, as the reference does.
+/// classified as two copies of itself, as the reference does. Each layer's input goes to
+/// `tap`.
 pub fn classify(
     w: &ClassifierWeights<'_>,
     descriptors: Descriptors<'_>,
     matches: &mut [Match],
     pool: &mut [f32],
     rows: &mut [f32],
+    tap: &mut dyn LayerTap,
 ) {
     if matches.is_empty() {
         return;
@@ -50,6 +52,20 @@ pub fn classify(
     let m = matches.len().max(2);
     let desc2 = &memory[..d * n2];
     let desc3 = &memory[offset3..offset3 + d * n3];
+    let (query, database) = (Input::one(desc2, d, n2), Input::one(desc3, d, n3));
+    let pair = |k: usize| {
+        let mt = &matches[k % matches.len()];
+        (usize::from(mt.i2d), usize::from(mt.i3d))
+    };
+    tap.layer_input(
+        w.input.tensor(),
+        &LayerInput::Matches {
+            a: query,
+            b: database,
+            pair: &pair,
+            count: m,
+        },
+    );
     let (g2, rest) = pool.split_at_mut(c * n2);
     let g3 = &mut rest[..c * n3];
     let half2 = ColumnSlice {
@@ -62,12 +78,8 @@ pub fn classify(
         start: d,
         cols: d,
     };
-    linear(&half2, &Input::one(desc2, d, n2), 0..c, |r, i0, v| {
-        store(g2, n2, r, i0, v)
-    });
-    linear(&half3, &Input::one(desc3, d, n3), 0..c, |r, i0, v| {
-        store(g3, n3, r, i0, v)
-    });
+    linear(&half2, &query, 0..c, |r, i0, v| store(g2, n2, r, i0, v));
+    linear(&half3, &database, 0..c, |r, i0, v| store(g3, n3, r, i0, v));
     let x = &mut memory[..c * m];
     for r in 0..c {
         let bias = w.input.bias(r);
@@ -78,9 +90,11 @@ pub fn classify(
         }
     }
     for block in &w.blocks[..w.count] {
-        residual_block(block, x, m, pool, rows);
+        residual_block(block, x, m, pool, rows, tap);
     }
-    linear(&w.output, &Input::one(x, c, m), 0..1, |_, i0, logits| {
+    let features = Input::one(x, c, m);
+    tap.layer_input(w.output.tensor(), &LayerInput::Points(features));
+    linear(&w.output, &features, 0..1, |_, i0, logits| {
         for (t, &logit) in logits.iter().enumerate() {
             if let Some(mt) = matches.get_mut(i0 + t) {
                 mt.probability = sigmoid(logit);

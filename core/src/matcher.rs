@@ -23,7 +23,7 @@ use crate::attention::{
 use crate::classifier::{classify, Descriptors};
 use crate::encoder::encode;
 use crate::error::{Error, Input as Which, Result};
-use crate::nn::{l2_normalize_points, ROW_BLOCK};
+use crate::nn::{l2_normalize_points, LayerTap, ROW_BLOCK};
 
 /// Rows of `N` values in the row scratch: per-row temporaries of the layers (a chunk of
 /// output rows waiting for their instance norm), Sinkhorn vectors, norms. Sized by its
@@ -66,9 +66,10 @@ pub enum Stage {
     Desc3dL2,
 }
 
-/// Receives intermediate outputs during [`Matcher::match_view_observed`]. Features are
-/// channel-major: channel `c` of point `i` is `x[c * n + i]`.
-pub trait Observer<S: PlanScalar> {
+/// Receives intermediate outputs during [`Matcher::match_view_observed`] and, as a
+/// [`LayerTap`], every layer's input. Features are channel-major: channel `c` of point `i`
+/// is `x[c * n + i]`.
+pub trait Observer<S: PlanScalar>: LayerTap {
     /// A feature matrix of `channels x n`.
     fn features(&mut self, _stage: Stage, _x: &[f32], _channels: usize, _n: usize) {}
     /// The solved transport (cost, potentials, plan on demand).
@@ -248,7 +249,7 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
         let d = usize::from(model.config().feature_dim);
         let x = &mut self.features.as_flattened_mut()[..d * n];
         let (pool, rows) = (self.pool.as_flattened_mut(), self.rows.as_flattened_mut());
-        encode(&model.encoder, query, x, pool, rows);
+        encode(&model.encoder, query, x, pool, rows, observer);
         observer.features(Stage::Enc2d, x, d, n);
         let k = neighbour_count(usize::from(model.config().knn), n);
         let graph = &mut self.graph2d[..n];
@@ -261,7 +262,7 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
             d,
             n,
         );
-        self_layer(&model.self_layers[0], graph, k, x, n, scratch);
+        self_layer(&model.self_layers[0], graph, k, x, n, scratch, observer);
         observer.features(Stage::Att0Self2d, x, d, n);
         self.query_len = n;
         self.query_config = *model.config();
@@ -347,7 +348,7 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
             features.copy_to(desc3d);
             return;
         }
-        encode(&model.encoder, db, desc3d, pool, rows);
+        encode(&model.encoder, db, desc3d, pool, rows, observer);
         observer.features(Stage::Enc3d, desc3d, d, n3);
         let scratch = self_scratch(
             pool,
@@ -364,6 +365,7 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
             desc3d,
             n3,
             scratch,
+            observer,
         );
         observer.features(Stage::Att0Self3d, desc3d, d, n3);
     }
@@ -396,8 +398,8 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
         desc2d.copy_from_slice(&query[..d * n2]);
 
         let heads = usize::from(config.heads);
-        cross_layer(&model.cross, heads, desc2d, n2, desc3d, n3, pool);
-        cross_layer(&model.cross, heads, desc3d, n3, desc2d, n2, pool);
+        cross_layer(&model.cross, heads, desc2d, n2, desc3d, n3, pool, observer);
+        cross_layer(&model.cross, heads, desc3d, n3, desc2d, n2, pool, observer);
         observer.features(Stage::Att1Cross2d, desc2d, d, n2);
         observer.features(Stage::Att1Cross3d, desc3d, d, n3);
 
@@ -414,7 +416,7 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
                 d,
                 n,
             );
-            self_layer(&model.self_layers[1], graph, k, x, n, scratch);
+            self_layer(&model.self_layers[1], graph, k, x, n, scratch, observer);
         }
         observer.features(Stage::Att2Self2d, desc2d, d, n2);
         observer.features(Stage::Att2Self3d, desc3d, d, n3);
@@ -459,6 +461,7 @@ impl<const N: usize, S: PlanScalar> Matcher<N, S> {
             &mut items[..count],
             pool,
             rows,
+            observer,
         );
         self.matches.len = count;
         self.matches.threshold = config.match_threshold;
@@ -629,6 +632,68 @@ mod tests {
             assert!(other > 0);
             let back = m.match_view(model, &db).expect("runs").as_slice().to_vec();
             assert_eq!(first, back);
+        });
+    }
+
+    /// Reads of the layer tap: tensor, channels and points of each input.
+    struct Reads(std::vec::Vec<(usize, usize, usize)>);
+
+    impl crate::nn::LayerTap for Reads {
+        fn layer_input(&mut self, tensor: usize, input: &crate::nn::LayerInput<'_>) {
+            use crate::nn::LayerInput;
+            let (channels, points) = match input {
+                LayerInput::Points(x) => (x.channels(), x.set()),
+                LayerInput::Edges { points, graph, k } => {
+                    assert_eq!(graph.len(), points.points());
+                    assert!(*k <= MAX_KNN);
+                    (points.channels(), points.points())
+                }
+                LayerInput::Matches { a, b, pair, count } => {
+                    for m in 0..*count {
+                        let (i, j) = pair(m);
+                        assert!(i < a.points() && j < b.points());
+                    }
+                    (a.channels() + b.channels(), *count)
+                }
+            };
+            self.0.push((tensor, channels, points));
+        }
+    }
+
+    impl Observer<f32> for Reads {}
+
+    /// The tap (`nn::tap`) sees every tensor of the blob read, each input with the columns
+    /// its tensor has (an EdgeConv pair's centre: half of the pair's), on the sets' sizes.
+    #[test]
+    fn every_layer_reports_its_input() {
+        with_model(|model| {
+            let (q, db) = (points(40, 1), points(50, 2));
+            let mut m = WORKSPACE.lock().expect("lock");
+            let mut reads = Reads(std::vec::Vec::new());
+            m.encode_query_observed(model, &q, &mut reads)
+                .expect("runs");
+            let count = m
+                .match_view_observed(model, &db, &mut reads)
+                .expect("runs")
+                .len();
+            assert!(count > 0);
+            let config = model.config();
+            let tensors = crate::weights::tensor_count(config);
+            let mut seen = std::vec![false; tensors];
+            for &(tensor, channels, n) in &reads.0 {
+                let spec = crate::weights::tensor_spec(config, tensor).expect("a blob tensor");
+                assert_eq!(spec.cols, channels, "tensor {tensor}");
+                assert!(
+                    [40, 50, count.max(2)].contains(&n),
+                    "tensor {tensor}: {n} points"
+                );
+                seen[tensor] = true;
+                let declared = crate::weights::locate(config, tensor).and_then(|s| s.tensor());
+                if declared.map(|t| t.downstream) == Some(crate::weights::Downstream::EdgeCentre) {
+                    seen[tensor + 1] = true;
+                }
+            }
+            assert!(seen.iter().all(|&s| s), "{seen:?}");
         });
     }
 

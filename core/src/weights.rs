@@ -449,6 +449,7 @@ pub fn tensor_spec(config: &ModelConfig, index: usize) -> Option<TensorSpec> {
 /// A per-point linear layer `y = s * (W x) + b` borrowed from the blob.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Linear<'a> {
+    tensor: usize,
     rows: usize,
     cols: usize,
     precision: Precision,
@@ -460,6 +461,7 @@ pub struct Linear<'a> {
 impl<'a> Linear<'a> {
     /// A 0 x 0 layer, the filler of unused block slots.
     pub const EMPTY: Linear<'static> = Linear {
+        tensor: usize::MAX,
         rows: 0,
         cols: 0,
         precision: Precision::F32,
@@ -467,6 +469,11 @@ impl<'a> Linear<'a> {
         scales: &[],
         bias: &[],
     };
+
+    /// Blob index of the tensor ([`locate`]; `usize::MAX` for [`Linear::EMPTY`]).
+    pub fn tensor(&self) -> usize {
+        self.tensor
+    }
 
     /// Output channels.
     pub fn rows(&self) -> usize {
@@ -908,7 +915,7 @@ impl<'a> Model<'a> {
                     found: index,
                 });
             };
-            let linear = check_record(&record, &spec, offset)?;
+            let linear = check_record(&record, &spec, index, offset)?;
             model.place(index, linear);
         }
         if !rest.is_empty() {
@@ -964,11 +971,12 @@ impl<'a> Model<'a> {
     }
 }
 
-/// Checks one record (at byte `offset` of the blob) against its expected shape and byte
-/// lengths.
+/// Checks one record (tensor `index`, at byte `offset` of the blob) against its expected
+/// shape and byte lengths.
 fn check_record<'a>(
     record: &TensorRecord<'a>,
     spec: &TensorSpec,
+    index: usize,
     offset: usize,
 ) -> Result<Linear<'a>> {
     let precision = record.precision;
@@ -1020,6 +1028,7 @@ fn check_record<'a>(
         }
     }
     Ok(Linear {
+        tensor: index,
         rows,
         cols,
         precision,
@@ -1111,6 +1120,7 @@ mod tests {
         let weights = [1u8, 255, 127, 129];
         let scales = [0.5f32.to_le_bytes(), 2.0f32.to_le_bytes()].concat_bytes();
         let linear = Linear {
+            tensor: 0,
             rows: 2,
             cols: 2,
             precision: Precision::Int8,
@@ -1325,6 +1335,7 @@ pub(crate) mod tests_support {
         bias: &'a [u8],
     ) -> Linear<'a> {
         Linear {
+            tensor: 0,
             rows,
             cols,
             precision,

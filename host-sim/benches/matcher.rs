@@ -10,6 +10,7 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
+use gomatch::nn::LayerTap;
 use gomatch::sinkhorn::{PlanScalar, Transport};
 use gomatch::{Matcher, Model, Observer, Precision, Stage};
 use gomatch_tools::convert::{convert_with, Options};
@@ -47,6 +48,8 @@ impl StageClock {
         self.last = now;
     }
 }
+
+impl LayerTap for StageClock {}
 
 impl<S: PlanScalar> Observer<S> for StageClock {
     fn features(&mut self, stage: Stage, _x: &[f32], _c: usize, _n: usize) {

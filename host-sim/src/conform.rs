@@ -13,6 +13,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
 use anyhow::{bail, ensure, Context, Result};
+use gomatch::nn::LayerTap;
 use gomatch::sinkhorn::{PlanScalar, Transport};
 use gomatch::{Matcher, Model, Observer, Precision, Stage};
 use gomatch_tools::convert::PrecisionArg;
@@ -288,6 +289,9 @@ fn stage_name(stage: Stage) -> &'static str {
         Stage::Desc3dL2 => "desc3d_l2",
     }
 }
+
+/// Layer inputs are not compared (the fixtures hold the stages' outputs).
+impl LayerTap for Comparison {}
 
 impl<S: PlanScalar> Observer<S> for Comparison {
     fn features(&mut self, stage: Stage, x: &[f32], channels: usize, n: usize) {

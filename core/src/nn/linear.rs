@@ -156,6 +156,11 @@ impl<'a> Input<'a> {
         self.n
     }
 
+    /// Points of the whole set (more than [`Input::points`] for a tile).
+    pub fn set(&self) -> usize {
+        self.set
+    }
+
     /// Channels of each part.
     pub fn part_channels(&self) -> [usize; 3] {
         self.rows

@@ -4,26 +4,29 @@
 
 use super::linear::{chunk_rows, larger, linear, store, Input};
 use super::norm::{instance_norm, relu};
+use super::tap::{LayerInput, LayerTap};
 use crate::weights::ResidualBlockWeights;
 
 /// Applies one block in place to `x` (`d x n`, channel-major). `hidden` holds at least
 /// `d x (n + 1)` values and `rows` at least `ROW_BLOCK x n`; both are scratch (more of
 /// either, fewer passes: the last conv's rows wait for their instance norm in the larger
-/// of `rows` and what `hidden` holds beyond `d x n`).
+/// of `rows` and what `hidden` holds beyond `d x n`). Each conv's input goes to `tap`.
 pub fn residual_block(
     w: &ResidualBlockWeights<'_>,
     x: &mut [f32],
     n: usize,
     hidden: &mut [f32],
     rows: &mut [f32],
+    tap: &mut dyn LayerTap,
 ) {
     let d = w.conv1.rows();
     let (inner, tile) = hidden.split_at_mut(d * n);
-    conv1_of_preconv(w, x, n, inner, tile);
+    conv1_of_preconv(w, x, n, inner, tile, tap);
     for row in inner.chunks_exact_mut(n) {
         instance_norm(row);
     }
     let input = Input::one(inner, d, n);
+    tap.layer_input(w.conv2.tensor(), &LayerInput::Points(input));
     let rows = larger(tile, rows);
     let chunk = chunk_rows(rows.len(), n);
     let mut r0 = 0;
@@ -44,14 +47,20 @@ pub fn residual_block(
 }
 
 /// `out = W1 (W0 x + b0) + b1` (`d x n`), through `tile` (at least `d` values): the
-/// preconv output of as many points at once as `tile` holds.
+/// preconv output of as many points at once as `tile` holds (conv1 reads it, and `tap`
+/// sees it, tile by tile).
 fn conv1_of_preconv(
     w: &ResidualBlockWeights<'_>,
     x: &[f32],
     n: usize,
     out: &mut [f32],
     tile: &mut [f32],
+    tap: &mut dyn LayerTap,
 ) {
+    tap.layer_input(
+        w.preconv.tensor(),
+        &LayerInput::Points(Input::one(x, w.preconv.cols(), n)),
+    );
     let d = w.preconv.rows();
     let points = (tile.len() / d.max(1)).clamp(1, n.max(1));
     let mut t0 = 0;
@@ -61,12 +70,11 @@ fn conv1_of_preconv(
         linear(&w.preconv, &input, 0..d, |r, i0, v| {
             store(tile, len, r, i0, v)
         });
-        linear(
-            &w.conv1,
-            &Input::one(tile, d, len).of_set(n),
-            0..d,
-            |r, i0, v| store(out, n, r, t0 + i0, v),
-        );
+        let preconv_out = Input::one(tile, d, len).of_set(n);
+        tap.layer_input(w.conv1.tensor(), &LayerInput::Points(preconv_out));
+        linear(&w.conv1, &preconv_out, 0..d, |r, i0, v| {
+            store(out, n, r, t0 + i0, v)
+        });
         t0 += len;
     }
 }
@@ -94,7 +102,7 @@ mod tests {
         let mut x = [1.0f32, 2.0, 3.0, 5.0, 5.0, 5.0];
         let mut hidden = [0.0; 8];
         let mut rows = [0.0; crate::nn::ROW_BLOCK * 3];
-        residual_block(&w, &mut x, 3, &mut hidden, &mut rows);
+        residual_block(&w, &mut x, 3, &mut hidden, &mut rows, &mut ());
         let mut z = [1.0f32, 2.0, 3.0];
         instance_norm(&mut z);
         instance_norm(&mut z);
