@@ -1,21 +1,25 @@
-//! Calibration data for the int8 conversion: synthetic query-view pairs drawn like the
-//! reference fixtures, and a host-side f64 forward pass of the float model that gathers,
-//! for every layer, the second moments of its inputs (the Hessian `H = X X^T` of the
-//! layer's squared output error, used by [`crate::quantize`]).
+//! Calibration of the int8 conversion: synthetic query-view pairs drawn like the reference
+//! fixtures, and the second moments of every layer's inputs (the Hessian `H = X X^T` of
+//! the layer's squared output error, used by [`crate::quantize`]) as the core's own forward
+//! pass reads them: `gomatch::Matcher` and `gomatch::classifier::classify` report each
+//! layer's input to a `gomatch::nn::LayerTap`, so the network exists once, in the core.
 //!
-//! The forward pass follows the network of `gomatch::Matcher` (encoder, EdgeConv self
-//! attention, cross attention, classifier; supp. "Architecture Details") on the converted
-//! tensors (split EdgeConv weights). Layers followed by an instance norm, directly or
-//! through another linear layer, see their inputs centred per set, because the norm
-//! removes any error that is constant over the set. The two halves of an EdgeConv layer
-//! act together on the edge `[x_i; x_j]`, so they share one joint moment matrix.
+//! Tensors are fitted one group at a time (an EdgeConv pair together, whose halves act on
+//! the edge `[x_i; x_j]` and share one joint moment matrix) in the order the forward pass
+//! reads them. With error correction every group sees the calibration pairs twice: on the
+//! float model and on the model quantised so far (an f32 blob of the dequantised weights);
+//! the classifier classifies the float model's matches on both, so their sets agree. What
+//! follows a tensor in the core's declaration (`weights::Downstream`) sets the form of its
+//! moments: centred per set where an instance norm follows it (directly or through another
+//! linear layer), because the norm removes any error that is constant over the set.
 
 use anyhow::Context;
+use gomatch::classifier::{classify, Descriptors};
+use gomatch::encoder::encode;
 use gomatch::matcher::Stage;
-use gomatch::weights::{
-    locate, tensor_index, CrossLayerWeights, Downstream, ModelConfig, Section, SelfLayerWeights,
-};
-use gomatch::{Matcher, Model, Precision};
+use gomatch::nn::{Input, LayerInput, LayerTap, ROW_BLOCK};
+use gomatch::weights::{locate, tensor_count, Downstream, ModelConfig, Section};
+use gomatch::{Match, Matcher, Model, Observer, Precision};
 use rand::seq::SliceRandom;
 use rand::{RngExt, SeedableRng};
 use rand_distr::StandardNormal;
@@ -381,19 +385,6 @@ impl Features {
         &mut self.x[c * self.n..(c + 1) * self.n]
     }
 
-    fn concat(parts: &[&Features]) -> Features {
-        let n = parts[0].n;
-        let mut x = Vec::new();
-        for p in parts {
-            x.extend_from_slice(&p.x);
-        }
-        Features {
-            channels: parts.iter().map(|p| p.channels).sum(),
-            n,
-            x,
-        }
-    }
-
     fn centred(&self) -> Features {
         let mut out = self.clone();
         for c in 0..out.channels {
@@ -404,145 +395,24 @@ impl Features {
         out
     }
 
-    /// The points `idx` in that order.
-    fn gather(&self, idx: &[usize]) -> Features {
-        let mut out = Features::zeros(self.channels, idx.len());
-        for c in 0..self.channels {
-            let src = self.row(c);
-            for (o, &i) in out.row_mut(c).iter_mut().zip(idx) {
-                *o = src[i];
+    /// The values of a layer input (its parts stacked), in f64.
+    fn of(input: &Input<'_>) -> Features {
+        let n = input.points();
+        let mut out = Features::zeros(input.channels(), n);
+        let mut c = 0;
+        for (part, channels) in input.part_channels().into_iter().enumerate() {
+            for channel in 0..channels {
+                for (o, &v) in out
+                    .row_mut(c)
+                    .iter_mut()
+                    .zip(input.channel(part, channel, 0, n))
+                {
+                    *o = f64::from(v);
+                }
+                c += 1;
             }
         }
         out
-    }
-
-    fn map(mut self, f: impl Fn(f64) -> f64) -> Features {
-        self.x.iter_mut().for_each(|v| *v = f(*v));
-        self
-    }
-
-    fn instance_norm(mut self) -> Features {
-        for c in 0..self.channels {
-            let row = self.row_mut(c);
-            let (mean, inv_std) = normalizer(row.iter().copied());
-            row.iter_mut().for_each(|v| *v = (*v - mean) * inv_std);
-        }
-        self
-    }
-}
-
-/// Mean and `1 / sqrt(biased variance + 1e-5)` of the values (instance norm, no affine).
-fn normalizer(values: impl Iterator<Item = f64> + Clone) -> (f64, f64) {
-    let count = values.clone().count().max(1) as f64;
-    let mean = values.clone().sum::<f64>() / count;
-    let variance = values.map(|v| (v - mean) * (v - mean)).sum::<f64>() / count;
-    (mean, 1.0 / (variance + 1e-5).sqrt())
-}
-
-fn leaky_relu(v: f64) -> f64 {
-    if v > 0.0 {
-        v
-    } else {
-        0.2 * v
-    }
-}
-
-/// `y = W x + b` per point, in register blocks of 4 outputs x 4 points.
-fn linear(w: &FloatLinear, x: &Features) -> Features {
-    const B: usize = 4;
-    let (rows, cols, n) = (w.rows, w.cols, x.n);
-    let blocks = rows.div_ceil(B);
-    // Weights interleaved by blocks of rows: `[block][input][B]`.
-    let mut weights = vec![[0.0f64; B]; blocks * cols];
-    for (r, row) in w.weights.chunks_exact(cols.max(1)).enumerate() {
-        for (k, &v) in row.iter().enumerate() {
-            weights[r / B * cols + k][r % B] = f64::from(v);
-        }
-    }
-    let mut y = Features::zeros(rows, n);
-    let mut packed = vec![[0.0f64; B]; cols];
-    let mut t0 = 0;
-    while t0 < n {
-        let len = B.min(n - t0);
-        for (k, p) in packed.iter_mut().enumerate() {
-            *p = [0.0; B];
-            p[..len].copy_from_slice(&x.row(k)[t0..t0 + len]);
-        }
-        for (b, block) in weights.chunks_exact(cols.max(1)).enumerate() {
-            let mut acc = [[0.0f64; B]; B];
-            for (wk, xk) in block.iter().zip(&packed) {
-                for (a, &wr) in acc.iter_mut().zip(wk) {
-                    for l in 0..B {
-                        a[l] += wr * xk[l];
-                    }
-                }
-            }
-            for (i, a) in acc.iter().enumerate() {
-                let r = b * B + i;
-                if r < rows {
-                    let bias = f64::from(w.bias.get(r).copied().unwrap_or(0.0));
-                    for (o, &v) in y.row_mut(r)[t0..t0 + len].iter_mut().zip(a) {
-                        *o = bias + v;
-                    }
-                }
-            }
-        }
-        t0 += len;
-    }
-    y
-}
-
-/// Float-path and quantised-path features of one set (`q` is `None` while both agree).
-#[derive(Debug, Clone)]
-struct Both {
-    f: Features,
-    q: Option<Features>,
-}
-
-impl Both {
-    fn exact(f: Features) -> Self {
-        Both { f, q: None }
-    }
-
-    fn q(&self) -> &Features {
-        self.q.as_ref().unwrap_or(&self.f)
-    }
-
-    fn map(self, op: impl Fn(Features) -> Features) -> Both {
-        Both {
-            f: op(self.f),
-            q: self.q.map(&op),
-        }
-    }
-
-    /// `op(self, other)` on both paths.
-    fn update(&mut self, other: &Both, op: impl Fn(&mut Features, &Features)) {
-        if other.q.is_some() && self.q.is_none() {
-            self.q = Some(self.f.clone());
-        }
-        op(&mut self.f, &other.f);
-        if let Some(q) = &mut self.q {
-            op(q, other.q());
-        }
-    }
-
-    fn concat(parts: &[&Both]) -> Both {
-        let f: Vec<&Features> = parts.iter().map(|p| &p.f).collect();
-        let q: Vec<&Features> = parts.iter().map(|p| p.q()).collect();
-        Both {
-            f: Features::concat(&f),
-            q: parts
-                .iter()
-                .any(|p| p.q.is_some())
-                .then(|| Features::concat(&q)),
-        }
-    }
-
-    fn gather(&self, idx: &[usize]) -> Both {
-        Both {
-            f: self.f.gather(idx),
-            q: self.q.as_ref().map(|q| q.gather(idx)),
-        }
     }
 }
 
@@ -556,59 +426,521 @@ pub struct FitOptions {
     pub correct: bool,
 }
 
-/// Rounds every tensor whose precision is int8 with GPTQ on the calibration `pairs`,
-/// layer by layer in forward order; `None` for the others. `f32_blob` (the f32
-/// conversion of `tensors`) gives the classifier's matches through `gomatch::Matcher`.
+/// Float-path and quantised-path inputs of one set (`q` is `None` without a quantised
+/// path: the float inputs stand for both).
+#[derive(Debug, Clone)]
+struct Both {
+    f: Features,
+    q: Option<Features>,
+}
+
+/// Rounds every tensor whose precision is int8 with GPTQ on the calibration `pairs`, one
+/// group at a time in the order the forward pass reads them; `None` for the others.
+/// `f32_blob` writes the f32 model blob of a set of tensors (the float model, and with
+/// `correct` the model quantised so far).
 ///
-/// With `correct`, the f64 forward pass runs twice in lockstep: the float model and the
-/// model quantised so far. A layer with float inputs `X` and quantised-path inputs `Xq`
-/// gets the least-squares target `W~ = W + (W X Xq^T - W Hq)(Hq + lambda I)^-1` of the
-/// float output from the quantised inputs (`Hq = Xq Xq^T`), which GPTQ then rounds with
-/// `Hq`: the error of the layers before is compensated where the inputs allow.
+/// With `correct`, a layer with float inputs `X` and quantised-path inputs `Xq` gets the
+/// least-squares target `W~ = W + (W X Xq^T - W Hq)(Hq + lambda I)^-1` of the float
+/// output from the quantised inputs (`Hq = Xq Xq^T`), which GPTQ then rounds with `Hq`:
+/// the error of the layers before is compensated where the inputs allow.
 pub fn fit_int8(
     config: &ModelConfig,
     tensors: &[FloatLinear],
     precisions: &[Precision],
-    f32_blob: &[u8],
     pairs: &[Pair],
     options: FitOptions,
+    f32_blob: impl Fn(&[FloatLinear]) -> anyhow::Result<Vec<u8>>,
 ) -> anyhow::Result<Vec<Option<Int8Tensor>>> {
-    static MATCHER: Mutex<Matcher<1024, f32>> = Mutex::new(Matcher::new());
-    let model = Model::from_bytes(f32_blob).map_err(|e| anyhow::anyhow!("f32 blob: {e}"))?;
-    let mut matches = Vec::with_capacity(pairs.len());
-    {
-        let mut matcher = MATCHER
-            .lock()
-            .map_err(|_| anyhow::anyhow!("matcher lock poisoned"))?;
-        for pair in pairs {
-            let set = matcher
-                .match_pair(&model, &pair.query, &pair.db)
-                .map_err(|e| anyhow::anyhow!("calibration pair: {e}"))?;
-            let list: Vec<(usize, usize)> = set
-                .as_slice()
-                .iter()
-                .map(|m| (usize::from(m.i2d), usize::from(m.i3d)))
-                .collect();
-            matches.push(list);
-        }
-    }
-    let mut engine = Engine {
-        config: *config,
+    let float_blob = f32_blob(tensors)?;
+    let float = Model::from_bytes(&float_blob).map_err(|e| anyhow::anyhow!("f32 blob: {e}"))?;
+    let unmatched: Vec<Run> = pairs
+        .iter()
+        .map(|pair| Run {
+            pair,
+            matches: Vec::new(),
+        })
+        .collect();
+    let matches = on_pairs(&unmatched, |_, run, matcher| {
+        let found = matcher
+            .match_pair(&float, &run.pair.query, &run.pair.db)
+            .map_err(|e| anyhow::anyhow!("calibration pair: {e}"))?;
+        Ok(found.as_slice().to_vec())
+    })?;
+    let runs: Vec<Run> = pairs
+        .iter()
+        .zip(matches)
+        .map(|(pair, matches)| Run { pair, matches })
+        .collect();
+    let mut fitter = Fitter {
         float: tensors,
         effective: tensors.to_vec(),
         precisions,
         options,
         int8: vec![None; tensors.len()],
     };
-    engine.run(pairs, &matches)?;
-    Ok(engine.int8)
+    let order = {
+        let mut matcher = lock(0)?;
+        reading_order(&mut matcher, &float, &runs)?
+    };
+    let mut descriptors: Option<Vec<[Descriptor; 2]>> = None;
+    for group in groups(config, &order)? {
+        if !group.iter().any(|&i| precisions[i] == Precision::Int8) {
+            fitter.keep_float(&group);
+            continue;
+        }
+        let quantised_blob = match options.correct {
+            true => Some(f32_blob(&fitter.effective)?),
+            false => None,
+        };
+        let quantised = quantised_blob
+            .as_deref()
+            .map(Model::from_bytes)
+            .transpose()
+            .map_err(|e| anyhow::anyhow!("quantised f32 blob: {e}"))?;
+        let reach = reach(config, group[0])?;
+        if reach == Reach::Classifier && descriptors.is_none() {
+            // The classifier's layers come last: the descriptors of both paths are final.
+            descriptors = Some(on_pairs(&runs, |_, run, matcher| {
+                let q = match &quantised {
+                    Some(model) => Some(run.descriptors(matcher, model)?),
+                    None => None,
+                };
+                Ok([Some(run.descriptors(matcher, &float)?), q])
+            })?);
+        }
+        let inputs = on_pairs(&runs, |at, run, matcher| {
+            let cached = |path: usize| descriptors.as_ref().and_then(|d| d[at][path].as_ref());
+            let f = run.inputs(matcher, &float, reach, cached(0), &group)?;
+            let q = match &quantised {
+                Some(model) => Some(run.inputs(matcher, model, reach, cached(1), &group)?),
+                None => None,
+            };
+            Ok((f, q))
+        })?;
+        let dim = group.iter().map(|&i| tensors[i].cols).sum();
+        let mut moments = Moments::new(dim);
+        for (f, q) in inputs {
+            moments.add_run(config, group[0], f, q)?;
+        }
+        fitter.fit_group(&group, &moments)?;
+    }
+    Ok(fitter.int8)
 }
 
-type Graph = Vec<Vec<usize>>;
+/// Matchers of the calibration's worker threads (statics: 7.5 MB each is not for a
+/// thread's stack).
+static MATCHERS: [Mutex<Matcher<1024, f32>>; WORKERS] = [
+    Mutex::new(Matcher::new()),
+    Mutex::new(Matcher::new()),
+    Mutex::new(Matcher::new()),
+    Mutex::new(Matcher::new()),
+];
+/// Most worker threads.
+const WORKERS: usize = 4;
 
-/// The two forward paths and the fitted tensors.
-struct Engine<'t> {
+fn lock(worker: usize) -> anyhow::Result<std::sync::MutexGuard<'static, Matcher<1024, f32>>> {
+    MATCHERS[worker]
+        .lock()
+        .map_err(|_| anyhow::anyhow!("matcher lock poisoned"))
+}
+
+/// `work(index, run, matcher)` on every run, spread over up to [`WORKERS`] threads;
+/// results in the runs' order (so the moments are summed in the same order whatever the
+/// thread count).
+fn on_pairs<T: Send>(
+    runs: &[Run<'_>],
+    work: impl Fn(usize, &Run<'_>, &mut Matcher<1024, f32>) -> anyhow::Result<T> + Sync,
+) -> anyhow::Result<Vec<T>> {
+    let workers = std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .clamp(1, WORKERS)
+        .min(runs.len().max(1));
+    let results: Vec<anyhow::Result<Vec<(usize, T)>>> = std::thread::scope(|scope| {
+        let handles: Vec<_> = (0..workers)
+            .map(|w| {
+                let work = &work;
+                scope.spawn(move || -> anyhow::Result<Vec<(usize, T)>> {
+                    let mut matcher = lock(w)?;
+                    (w..runs.len())
+                        .step_by(workers)
+                        .map(|i| Ok((i, work(i, &runs[i], &mut matcher)?)))
+                        .collect()
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| {
+                h.join()
+                    .unwrap_or_else(|_| Err(anyhow::anyhow!("calibration worker panicked")))
+            })
+            .collect()
+    });
+    let mut slots: Vec<Option<T>> = (0..runs.len()).map(|_| None).collect();
+    for part in results {
+        for (i, value) in part? {
+            slots[i] = Some(value);
+        }
+    }
+    slots
+        .into_iter()
+        .map(|v| v.context("a calibration pair was not run"))
+        .collect()
+}
+
+/// A pair's L2-normalised descriptors on one path, both sets stacked (`None` without
+/// that path).
+type Descriptor = Option<Vec<f32>>;
+
+/// How far into the forward pass a tensor is read, so how much of it must run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Reach {
+    /// The point encoder of each set.
+    Encoder,
+    /// The matcher up to the descriptors.
+    Pair,
+    /// The classifier on the final descriptors.
+    Classifier,
+}
+
+fn reach(config: &ModelConfig, tensor: usize) -> anyhow::Result<Reach> {
+    let slot = locate(config, tensor).context("tensor index past the layout")?;
+    Ok(match slot.section {
+        Section::EncoderInput | Section::EncoderBlock => Reach::Encoder,
+        Section::SelfLayer | Section::CrossLayer => Reach::Pair,
+        Section::ClassifierInput | Section::ClassifierBlock | Section::ClassifierOutput => {
+            Reach::Classifier
+        }
+    })
+}
+
+/// One calibration pair and the float model's matches on it.
+struct Run<'p> {
+    pair: &'p Pair,
+    matches: Vec<Match>,
+}
+
+impl Run<'_> {
+    /// The inputs of the tensors of `group` when `model` runs this pair as far as `reach`
+    /// (the classifier on `descriptors`), in the order read.
+    fn inputs(
+        &self,
+        matcher: &mut Matcher<1024, f32>,
+        model: &Model<'_>,
+        reach: Reach,
+        descriptors: Option<&Vec<f32>>,
+        group: &[usize],
+    ) -> anyhow::Result<Vec<Captured>> {
+        let mut tap = Tap::new(*model.config(), group);
+        match reach {
+            Reach::Encoder => self.encode(model, &mut tap),
+            Reach::Pair => self.describe(matcher, model, &mut tap)?,
+            Reach::Classifier => {
+                let descriptors = descriptors.context("descriptors of the classifier's pair")?;
+                self.classify(model, descriptors, &mut tap);
+            }
+        }
+        anyhow::ensure!(tap.tile.is_none(), "a tile set left incomplete");
+        Ok(tap.inputs)
+    }
+
+    /// The core's point encoder on both sets.
+    fn encode(&self, model: &Model<'_>, tap: &mut Tap) {
+        let d = usize::from(model.config().feature_dim);
+        for points in [&self.pair.query, &self.pair.db] {
+            let n = points.len();
+            let mut x = vec![0.0; d * n];
+            // Room for the whole set's preconv output and conv2 rows (one call per layer,
+            // as in the matcher's pool).
+            let mut hidden = vec![0.0; 2 * d * n + d];
+            let mut rows = vec![0.0; ROW_BLOCK * n];
+            encode(&model.encoder, points, &mut x, &mut hidden, &mut rows, tap);
+        }
+    }
+
+    /// The core's matcher on this pair (its classifier, on its own matches, not kept).
+    fn describe(
+        &self,
+        matcher: &mut Matcher<1024, f32>,
+        model: &Model<'_>,
+        tap: &mut Tap,
+    ) -> anyhow::Result<()> {
+        let fail = |e: gomatch::Error| anyhow::anyhow!("calibration pair: {e}");
+        tap.in_matcher = true;
+        matcher
+            .encode_query_observed(model, &self.pair.query, tap)
+            .map_err(fail)?;
+        matcher
+            .match_view_observed(model, &self.pair.db, tap)
+            .map_err(fail)?;
+        tap.in_matcher = false;
+        Ok(())
+    }
+
+    /// The L2-normalised descriptors of both sets on `model`, stacked.
+    fn descriptors(
+        &self,
+        matcher: &mut Matcher<1024, f32>,
+        model: &Model<'_>,
+    ) -> anyhow::Result<Vec<f32>> {
+        let mut tap = Tap::new(*model.config(), &[]);
+        self.describe(matcher, model, &mut tap)?;
+        let [desc2, desc3] = tap.descriptors;
+        Ok([desc2, desc3].concat())
+    }
+
+    /// The core's classifier on the float model's matches, given the stacked descriptors.
+    fn classify(&self, model: &Model<'_>, descriptors: &[f32], tap: &mut Tap) {
+        if self.matches.is_empty() {
+            return;
+        }
+        let (n2, n3) = (self.pair.query.len(), self.pair.db.len());
+        let classifier = &model.classifier;
+        let c = classifier.input.rows();
+        let m = self.matches.len().max(2);
+        let mut memory = descriptors.to_vec();
+        memory.resize(memory.len().max(c * m), 0.0);
+        let mut pool = vec![0.0; c * (n2 + n3).max(2 * m + 1)];
+        let mut rows = vec![0.0; ROW_BLOCK * m];
+        let d = usize::from(model.config().feature_dim);
+        let descriptors = Descriptors {
+            memory: &mut memory,
+            offset3: d * n2,
+            n2,
+            n3,
+        };
+        let mut matches = self.matches.clone();
+        classify(
+            classifier,
+            descriptors,
+            &mut matches,
+            &mut pool,
+            &mut rows,
+            tap,
+        );
+    }
+}
+
+/// The blob index of every tensor in the order the forward pass first reads it (on the
+/// first pair with a match, so that the classifier runs).
+fn reading_order(
+    matcher: &mut Matcher<1024, f32>,
+    float: &Model<'_>,
+    runs: &[Run<'_>],
+) -> anyhow::Result<Vec<usize>> {
+    let run = runs
+        .iter()
+        .find(|r| !r.matches.is_empty())
+        .context("no calibration pair has a match: the classifier cannot be calibrated")?;
+    let mut tap = Tap::new(*float.config(), &[]);
+    run.describe(matcher, float, &mut tap)?;
+    let descriptors = [&tap.descriptors[0][..], &tap.descriptors[1][..]].concat();
+    run.classify(float, &descriptors, &mut tap);
+    Ok(tap.order)
+}
+
+/// The fit groups in reading order: each tensor alone, an EdgeConv pair (reported by its
+/// centre tensor) together. Every tensor of the layout must be read.
+fn groups(config: &ModelConfig, order: &[usize]) -> anyhow::Result<Vec<Vec<usize>>> {
+    let mut groups = Vec::with_capacity(order.len());
+    let mut covered = vec![false; tensor_count(config)];
+    for &index in order {
+        let group = match downstream(config, index)? {
+            Downstream::EdgeCentre => vec![index, index + 1],
+            Downstream::EdgeNeighbour => anyhow::bail!("tensor {index} read as an EdgeConv centre"),
+            Downstream::Direct | Downstream::Norm => vec![index],
+        };
+        for &member in &group {
+            *covered
+                .get_mut(member)
+                .context("tensor index past the layout")? = true;
+        }
+        groups.push(group);
+    }
+    if let Some(missing) = covered.iter().position(|&c| !c) {
+        anyhow::bail!("the forward pass never reads tensor {missing}");
+    }
+    Ok(groups)
+}
+
+/// What follows tensor `index` in the network (the core's declaration).
+fn downstream(config: &ModelConfig, index: usize) -> anyhow::Result<Downstream> {
+    let tensor = locate(config, index)
+        .and_then(|slot| slot.tensor())
+        .context("tensor index past the layout")?;
+    Ok(tensor.downstream)
+}
+
+/// One input read by a tensor of the group.
+#[derive(Debug, Clone)]
+enum Captured {
+    /// The points of one set.
+    Points(Features),
+    /// The points of one set and their neighbour lists (an EdgeConv pair's input).
+    Edges(Features, Vec<Vec<usize>>),
+}
+
+/// Keeps the inputs of the tensors of one group (and the reading order and the final
+/// descriptors) as the core's forward pass reports them.
+struct Tap {
     config: ModelConfig,
+    group: Vec<usize>,
+    inputs: Vec<Captured>,
+    /// A set read in tiles: its tensor, its columns so far and how many are filled.
+    tile: Option<(usize, Features, usize)>,
+    order: Vec<usize>,
+    /// The L2-normalised query and database descriptors.
+    descriptors: [Vec<f32>; 2],
+    /// Whether the matcher is running: its classifier (on its own matches) is not kept.
+    in_matcher: bool,
+}
+
+impl Tap {
+    fn new(config: ModelConfig, group: &[usize]) -> Self {
+        Tap {
+            config,
+            group: group.to_vec(),
+            inputs: Vec::new(),
+            tile: None,
+            order: Vec::new(),
+            descriptors: [Vec::new(), Vec::new()],
+            in_matcher: false,
+        }
+    }
+
+    fn is_classifier(&self, tensor: usize) -> bool {
+        locate(&self.config, tensor).is_some_and(|slot| {
+            matches!(
+                slot.section,
+                Section::ClassifierInput | Section::ClassifierBlock | Section::ClassifierOutput
+            )
+        })
+    }
+
+    /// Adds columns of a set: the whole set, or its next tile.
+    fn add_points(&mut self, tensor: usize, x: &Input<'_>) {
+        let columns = Features::of(x);
+        if x.points() == x.set() {
+            self.inputs.push(Captured::Points(columns));
+            return;
+        }
+        let (_, set, filled) = self
+            .tile
+            .get_or_insert_with(|| (tensor, Features::zeros(columns.channels, x.set()), 0));
+        for c in 0..columns.channels {
+            set.row_mut(c)[*filled..*filled + columns.n].copy_from_slice(columns.row(c));
+        }
+        *filled += columns.n;
+        if *filled == set.n {
+            if let Some((_, set, _)) = self.tile.take() {
+                self.inputs.push(Captured::Points(set));
+            }
+        }
+    }
+}
+
+impl LayerTap for Tap {
+    fn layer_input(&mut self, tensor: usize, input: &LayerInput<'_>) {
+        if self.in_matcher && self.is_classifier(tensor) {
+            return;
+        }
+        if !self.order.contains(&tensor) {
+            self.order.push(tensor);
+        }
+        if !self.group.contains(&tensor) {
+            return;
+        }
+        match *input {
+            LayerInput::Points(x) => self.add_points(tensor, &x),
+            LayerInput::Edges { points, graph, k } => {
+                let lists = graph
+                    .iter()
+                    .map(|nb| nb[..k].iter().map(|&j| usize::from(j)).collect())
+                    .collect();
+                self.inputs
+                    .push(Captured::Edges(Features::of(&points), lists));
+            }
+            LayerInput::Matches { a, b, pair, count } => {
+                let (a, b) = (Features::of(&a), Features::of(&b));
+                let mut x = Features::zeros(a.channels + b.channels, count);
+                for m in 0..count {
+                    let (i, j) = pair(m);
+                    for c in 0..a.channels {
+                        x.row_mut(c)[m] = a.row(c)[i];
+                    }
+                    for c in 0..b.channels {
+                        x.row_mut(a.channels + c)[m] = b.row(c)[j];
+                    }
+                }
+                self.inputs.push(Captured::Points(x));
+            }
+        }
+    }
+}
+
+impl Observer<f32> for Tap {
+    fn features(&mut self, stage: Stage, x: &[f32], _channels: usize, _n: usize) {
+        match stage {
+            Stage::Desc2dL2 => self.descriptors[0] = x.to_vec(),
+            Stage::Desc3dL2 => self.descriptors[1] = x.to_vec(),
+            _ => {}
+        }
+    }
+}
+
+impl Moments {
+    /// Adds the inputs one pair gave a group led by tensor `lead`: `f` on the float model,
+    /// `q` on the quantised one (read in the same order).
+    fn add_run(
+        &mut self,
+        config: &ModelConfig,
+        lead: usize,
+        f: Vec<Captured>,
+        q: Option<Vec<Captured>>,
+    ) -> anyhow::Result<()> {
+        let centred = downstream(config, lead)? == Downstream::Norm;
+        let q: Vec<Option<Captured>> = match q {
+            Some(q) => {
+                anyhow::ensure!(q.len() == f.len(), "the two paths read different inputs");
+                q.into_iter().map(Some).collect()
+            }
+            None => vec![None; f.len()],
+        };
+        for (f, q) in f.into_iter().zip(q) {
+            match (f, q) {
+                (Captured::Points(f), q) => {
+                    let q = match q {
+                        Some(Captured::Points(q)) => Some(same_shape(&f, q)?),
+                        None => None,
+                        Some(_) => anyhow::bail!("the two paths read different inputs"),
+                    };
+                    self.add(&Both { f, q }, centred);
+                }
+                (Captured::Edges(f, graph), q) => {
+                    let q = match q {
+                        Some(Captured::Edges(q, _)) => Some(same_shape(&f, q)?),
+                        None => None,
+                        Some(_) => anyhow::bail!("the two paths read different inputs"),
+                    };
+                    self.add_edges(&Both { f, q }, &graph);
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// `q`, checked to have the shape of `f`.
+fn same_shape(f: &Features, q: Features) -> anyhow::Result<Features> {
+    anyhow::ensure!(
+        (f.channels, f.n) == (q.channels, q.n),
+        "the two paths read inputs of different shapes"
+    );
+    Ok(q)
+}
+
+/// The tensors of the float and the quantised model, and the int8 ones fitted so far.
+struct Fitter<'t> {
     float: &'t [FloatLinear],
     /// Weights of the quantised path: dequantised int8, f16-rounded or f32.
     effective: Vec<FloatLinear>,
@@ -617,80 +949,29 @@ struct Engine<'t> {
     int8: Vec<Option<Int8Tensor>>,
 }
 
-impl Engine<'_> {
-    /// Blob index of `part` of instance `instance` of `section` (the core's layout).
-    fn index(&self, section: Section, instance: usize, part: usize) -> usize {
-        tensor_index(&self.config, section, instance, part)
-            .expect("the layout holds every tensor the forward pass uses")
-    }
-
-    /// Layer `index` on both paths.
-    fn apply(&self, index: usize, x: &Both) -> Both {
-        Both {
-            f: linear(&self.float[index], &x.f),
-            q: self
-                .options
-                .correct
-                .then(|| linear(&self.effective[index], x.q())),
+impl Fitter<'_> {
+    /// Sets the quantised path's weights of a group's f16 members (f32 ones stay).
+    fn keep_float(&mut self, group: &[usize]) {
+        for &index in group {
+            if self.precisions[index] == Precision::F16 {
+                self.effective[index] = rounded_f16(&self.float[index]);
+            }
         }
-    }
-
-    /// What follows tensor `index` in the network (the core's declaration).
-    fn downstream(&self, index: usize) -> anyhow::Result<Downstream> {
-        let tensor = locate(&self.config, index)
-            .and_then(|slot| slot.tensor())
-            .context("tensor index past the layout")?;
-        Ok(tensor.downstream)
-    }
-
-    /// Fits the single tensor `index` on the inputs `xs`, centred over each set where an
-    /// instance norm follows it.
-    fn fit(&mut self, index: usize, xs: &[&Both]) -> anyhow::Result<()> {
-        let centred = match self.downstream(index)? {
-            Downstream::Direct => false,
-            Downstream::Norm => true,
-            edge => anyhow::bail!(
-                "tensor {index} is an EdgeConv half ({edge:?}): fit it as an edge pair"
-            ),
-        };
-        let mut m = Moments::new(self.float[index].cols);
-        for x in xs {
-            m.add(x, centred);
-        }
-        self.fit_group(&[index], &m)
-    }
-
-    /// Fits the EdgeConv pair `centre`, `centre + 1` on the edges of `xs`.
-    fn fit_edges(&mut self, centre: usize, xs: &[Both], graphs: &[Graph]) -> anyhow::Result<()> {
-        let pair = (self.downstream(centre)?, self.downstream(centre + 1)?);
-        anyhow::ensure!(
-            pair == (Downstream::EdgeCentre, Downstream::EdgeNeighbour),
-            "tensors {centre}, {} are not an EdgeConv pair ({pair:?})",
-            centre + 1
-        );
-        let mut m = Moments::new(self.float[centre].cols + self.float[centre + 1].cols);
-        for (x, g) in xs.iter().zip(graphs) {
-            m.add_edges(x, g);
-        }
-        self.fit_group(&[centre, centre + 1], &m)
     }
 
     /// Rounds the int8 members of a group whose columns concatenate to the moments'.
     fn fit_group(&mut self, group: &[usize], m: &Moments) -> anyhow::Result<()> {
+        self.keep_float(group);
         let mut int8_columns = Vec::new();
         let mut members = Vec::new();
         let mut at = 0;
         for &index in group {
-            let t = &self.float[index];
-            match self.precisions[index] {
-                Precision::Int8 => {
-                    int8_columns.extend(at..at + t.cols);
-                    members.push(index);
-                }
-                Precision::F16 => self.effective[index] = rounded_f16(t),
-                Precision::F32 => {}
+            let cols = self.float[index].cols;
+            if self.precisions[index] == Precision::Int8 {
+                int8_columns.extend(at..at + cols);
+                members.push(index);
             }
-            at += t.cols;
+            at += cols;
         }
         if members.is_empty() {
             return Ok(());
@@ -755,247 +1036,6 @@ impl Engine<'_> {
         }
         Ok(())
     }
-
-    fn run(&mut self, pairs: &[Pair], matches: &[Vec<(usize, usize)>]) -> anyhow::Result<()> {
-        let x = self.descriptors(pairs, |_, _| {})?;
-        let (d2, d3) = x.split_at(pairs.len());
-        self.classifier(d2, d3, matches)
-    }
-
-    /// Encoder and attention on every pair (fitting each layer on the way), then the
-    /// L2-normalised descriptors: the query sets', then the database sets'. Each stage's
-    /// output goes to `seen` with the core matcher's names for it (query, database).
-    fn descriptors(
-        &mut self,
-        pairs: &[Pair],
-        mut seen: impl FnMut([Stage; 2], &[Both]),
-    ) -> anyhow::Result<Vec<Both>> {
-        let knn = usize::from(self.config.knn);
-        let sets: Vec<&[[f32; 2]]> = pairs
-            .iter()
-            .map(|p| &p.query[..])
-            .chain(pairs.iter().map(|p| &p.db[..]))
-            .collect();
-        let graphs: Vec<Graph> = sets.iter().map(|s| knn_graph(s, knn)).collect();
-        let x = self.encode(&sets)?;
-        seen([Stage::Enc2d, Stage::Enc3d], &x);
-        let x = self.self_layer(0, &x, &graphs)?;
-        seen([Stage::Att0Self2d, Stage::Att0Self3d], &x);
-        let (x2, x3) = x.split_at(pairs.len());
-        let (x2, x3) = self.cross_layer(x2, x3)?;
-        let x: Vec<Both> = x2.into_iter().chain(x3).collect();
-        seen([Stage::Att1Cross2d, Stage::Att1Cross3d], &x);
-        let x = self.self_layer(1, &x, &graphs)?;
-        seen([Stage::Att2Self2d, Stage::Att2Self3d], &x);
-        let x: Vec<Both> = x.into_iter().map(|b| b.map(l2_normalize)).collect();
-        seen([Stage::Desc2dL2, Stage::Desc3dL2], &x);
-        Ok(x)
-    }
-
-    fn encode(&mut self, sets: &[&[[f32; 2]]]) -> anyhow::Result<Vec<Both>> {
-        let coords: Vec<Both> = sets
-            .iter()
-            .map(|points| {
-                let n = points.len();
-                let mut c = Features::zeros(2, n);
-                for (i, p) in points.iter().enumerate() {
-                    c.x[i] = f64::from(p[0]);
-                    c.x[n + i] = f64::from(p[1]);
-                }
-                Both::exact(c)
-            })
-            .collect();
-        let input = self.index(Section::EncoderInput, 0, 0);
-        self.fit(input, &coords.iter().collect::<Vec<_>>())?;
-        let x = coords.iter().map(|c| self.apply(input, c)).collect();
-        self.residual_blocks(x, Section::EncoderBlock)
-    }
-
-    /// `x += ReLU(IN(W2 IN(W1 W0 x)))` per block of `section` (biases included).
-    fn residual_blocks(&mut self, mut x: Vec<Both>, section: Section) -> anyhow::Result<Vec<Both>> {
-        for b in 0..section.repeats(&self.config) {
-            let [preconv, conv1, conv2] = [0, 1, 2].map(|part| self.index(section, b, part));
-            self.fit(preconv, &x.iter().collect::<Vec<_>>())?;
-            let h0: Vec<Both> = x.iter().map(|x| self.apply(preconv, x)).collect();
-            self.fit(conv1, &h0.iter().collect::<Vec<_>>())?;
-            let h: Vec<Both> = h0
-                .iter()
-                .map(|h0| self.apply(conv1, h0).map(Features::instance_norm))
-                .collect();
-            self.fit(conv2, &h.iter().collect::<Vec<_>>())?;
-            for (x, h) in x.iter_mut().zip(&h) {
-                let z = self
-                    .apply(conv2, h)
-                    .map(|z| z.instance_norm().map(|v| v.max(0.0)));
-                x.update(&z, |x, z| {
-                    x.x.iter_mut().zip(&z.x).for_each(|(v, z)| *v += z)
-                });
-            }
-        }
-        Ok(x)
-    }
-
-    fn self_layer(
-        &mut self,
-        layer: usize,
-        x: &[Both],
-        graphs: &[Graph],
-    ) -> anyhow::Result<Vec<Both>> {
-        let part = |p| self.index(Section::SelfLayer, layer, p);
-        let (edge1, edge2, fuse) = (
-            part(SelfLayerWeights::EDGE1),
-            part(SelfLayerWeights::EDGE2),
-            part(SelfLayerWeights::FUSE),
-        );
-        let x1 = self.edge_conv(edge1, x, graphs)?;
-        let x2 = self.edge_conv(edge2, &x1, graphs)?;
-        let cat: Vec<Both> = x
-            .iter()
-            .zip(&x1)
-            .zip(&x2)
-            .map(|((a, b), c)| Both::concat(&[a, b, c]))
-            .collect();
-        self.fit(fuse, &cat.iter().collect::<Vec<_>>())?;
-        Ok(cat
-            .iter()
-            .map(|c| {
-                self.apply(fuse, c)
-                    .map(|y| y.instance_norm().map(leaky_relu))
-            })
-            .collect())
-    }
-
-    fn edge_conv(
-        &mut self,
-        centre: usize,
-        x: &[Both],
-        graphs: &[Graph],
-    ) -> anyhow::Result<Vec<Both>> {
-        self.fit_edges(centre, x, graphs)?;
-        Ok(x.iter()
-            .zip(graphs)
-            .map(|(x, g)| {
-                let (a, b) = (self.apply(centre, x), self.apply(centre + 1, x));
-                Both {
-                    f: finish_edges(&a.f, &b.f, g),
-                    q: a.q.as_ref().map(|aq| finish_edges(aq, b.q(), g)),
-                }
-            })
-            .collect())
-    }
-
-    /// The cross layer on both directions (2D from 3D, then 3D from the updated 2D). Its
-    /// tensors are fitted on the inputs of both calls; the second call's sources on the
-    /// quantised path are the first call's outputs with the float cross layer.
-    fn cross_layer(&mut self, x2: &[Both], x3: &[Both]) -> anyhow::Result<(Vec<Both>, Vec<Both>)> {
-        // The layer's tensors are consecutive, in the order of `CrossLayerWeights::TENSORS`.
-        let base = self.index(Section::CrossLayer, 0, 0);
-        let [query, key, value, merge, mlp_hidden, mlp_out] = [
-            CrossLayerWeights::QUERY,
-            CrossLayerWeights::KEY,
-            CrossLayerWeights::VALUE,
-            CrossLayerWeights::MERGE,
-            CrossLayerWeights::MLP_HIDDEN,
-            CrossLayerWeights::MLP_OUT,
-        ]
-        .map(|part| base + part);
-        let heads = usize::from(self.config.heads);
-        let float = &self.float[base..base + CrossLayerWeights::TENSORS.len()];
-        let first: Vec<Both> = x2
-            .iter()
-            .zip(x3)
-            .map(|(a, b)| Both {
-                f: cross(float, heads, &a.f, &b.f),
-                q: (a.q.is_some() || b.q.is_some()).then(|| cross(float, heads, a.q(), b.q())),
-            })
-            .collect();
-        let targets: Vec<&Both> = x2.iter().chain(x3).collect();
-        let sources: Vec<&Both> = x3.iter().chain(&first).collect();
-        self.fit(query, &targets)?;
-        self.fit(key, &sources)?;
-        self.fit(value, &sources)?;
-        let messages: Vec<Both> = targets
-            .iter()
-            .zip(&sources)
-            .map(|(t, s)| {
-                let (q, k, v) = (
-                    self.apply(query, t),
-                    self.apply(key, s),
-                    self.apply(value, s),
-                );
-                Both {
-                    f: attention(heads, &q.f, &k.f, &v.f),
-                    q: q.q.as_ref().map(|qq| attention(heads, qq, k.q(), v.q())),
-                }
-            })
-            .collect();
-        self.fit(merge, &messages.iter().collect::<Vec<_>>())?;
-        let cat: Vec<Both> = targets
-            .iter()
-            .zip(&messages)
-            .map(|(t, m)| Both::concat(&[t, &self.apply(merge, m)]))
-            .collect();
-        self.fit(mlp_hidden, &cat.iter().collect::<Vec<_>>())?;
-        let hidden: Vec<Both> = cat
-            .iter()
-            .map(|c| {
-                self.apply(mlp_hidden, c)
-                    .map(|h| h.instance_norm().map(|v| v.max(0.0)))
-            })
-            .collect();
-        self.fit(mlp_out, &hidden.iter().collect::<Vec<_>>())?;
-        let both = |x: &Both, src: &Both| -> Both {
-            Both {
-                f: cross(
-                    &self.float[base..base + CrossLayerWeights::TENSORS.len()],
-                    heads,
-                    &x.f,
-                    &src.f,
-                ),
-                q: self.options.correct.then(|| {
-                    cross(
-                        &self.effective[base..base + CrossLayerWeights::TENSORS.len()],
-                        heads,
-                        x.q(),
-                        src.q(),
-                    )
-                }),
-            }
-        };
-        let new2: Vec<Both> = x2.iter().zip(x3).map(|(a, b)| both(a, b)).collect();
-        let new3: Vec<Both> = x3.iter().zip(&new2).map(|(a, b)| both(a, b)).collect();
-        Ok((new2, new3))
-    }
-
-    /// The match classifier on `[f2d; f3d]` of each match (a single match twice).
-    fn classifier(
-        &mut self,
-        d2: &[Both],
-        d3: &[Both],
-        matches: &[Vec<(usize, usize)>],
-    ) -> anyhow::Result<()> {
-        let inputs: Vec<Both> = d2
-            .iter()
-            .zip(d3)
-            .zip(matches)
-            .filter(|(_, m)| !m.is_empty())
-            .map(|((a, b), m)| {
-                let mut list = m.clone();
-                if list.len() == 1 {
-                    list.push(list[0]);
-                }
-                let i2: Vec<usize> = list.iter().map(|m| m.0).collect();
-                let i3: Vec<usize> = list.iter().map(|m| m.1).collect();
-                Both::concat(&[&a.gather(&i2), &b.gather(&i3)])
-            })
-            .collect();
-        let input = self.index(Section::ClassifierInput, 0, 0);
-        self.fit(input, &inputs.iter().collect::<Vec<_>>())?;
-        let x = inputs.iter().map(|x| self.apply(input, x)).collect();
-        let x = self.residual_blocks(x, Section::ClassifierBlock)?;
-        let output = self.index(Section::ClassifierOutput, 0, 0);
-        self.fit(output, &x.iter().collect::<Vec<_>>())
-    }
 }
 
 /// Solves `(H + lambda I) x = b` for the dampened moments (see [`quantize::DAMPENING`]).
@@ -1053,128 +1093,6 @@ fn dequantized(t: &FloatLinear, q: &Int8Tensor) -> FloatLinear {
     }
 }
 
-/// `LeakyReLU((a_i + max_j b_j - mean) / std)` per channel, the statistics over all edges
-/// `a_i + b_j` (EdgeConv with instance norm, then the max over neighbours).
-fn finish_edges(a: &Features, b: &Features, graph: &[Vec<usize>]) -> Features {
-    let mut out = Features::zeros(a.channels, a.n);
-    for c in 0..a.channels {
-        let (ac, bc) = (a.row(c), b.row(c));
-        let edges = graph
-            .iter()
-            .enumerate()
-            .flat_map(|(i, nb)| nb.iter().map(move |&j| ac[i] + bc[j]));
-        let (mean, inv_std) = normalizer(edges);
-        for (i, nb) in graph.iter().enumerate() {
-            let best = nb.iter().map(|&j| bc[j]).fold(f64::NEG_INFINITY, f64::max);
-            out.row_mut(c)[i] = leaky_relu((ac[i] + best - mean) * inv_std);
-        }
-    }
-    out
-}
-
-/// The `min(knn, n - 1)` nearest other points of each point (ties to the lower index).
-fn knn_graph(points: &[[f32; 2]], knn: usize) -> Graph {
-    let k = knn.min(points.len().saturating_sub(1));
-    points
-        .iter()
-        .enumerate()
-        .map(|(i, a)| {
-            let mut order: Vec<(f64, usize)> = points
-                .iter()
-                .enumerate()
-                .filter(|&(j, _)| j != i)
-                .map(|(j, b)| {
-                    let dx = f64::from(a[0] - b[0]);
-                    let dy = f64::from(a[1] - b[1]);
-                    (dx * dx + dy * dy, j)
-                })
-                .collect();
-            order.sort_by(|p, q| p.partial_cmp(q).expect("finite distances"));
-            order[..k].iter().map(|&(_, j)| j).collect()
-        })
-        .collect()
-}
-
-/// `x + MLP([x, merge(attention(q(x), k(src), v(src)))])` (supp. eq. 6-8) with the six
-/// cross layer's tensors `t` (in the order of `CrossLayerWeights::TENSORS`).
-fn cross(t: &[FloatLinear], heads: usize, x: &Features, src: &Features) -> Features {
-    let message = attention(
-        heads,
-        &linear(&t[CrossLayerWeights::QUERY], x),
-        &linear(&t[CrossLayerWeights::KEY], src),
-        &linear(&t[CrossLayerWeights::VALUE], src),
-    );
-    let merged = linear(&t[CrossLayerWeights::MERGE], &message);
-    let hidden = linear(
-        &t[CrossLayerWeights::MLP_HIDDEN],
-        &Features::concat(&[x, &merged]),
-    )
-    .instance_norm()
-    .map(|v| v.max(0.0));
-    let update = linear(&t[CrossLayerWeights::MLP_OUT], &hidden);
-    let mut out = x.clone();
-    out.x.iter_mut().zip(&update.x).for_each(|(o, u)| *o += u);
-    out
-}
-
-/// Scaled dot-product attention of queries `q` over keys `k` and values `v`, channel `c`
-/// in head `c % heads`.
-fn attention(heads: usize, q: &Features, k: &Features, v: &Features) -> Features {
-    let d = q.channels;
-    let head_dim = d / heads;
-    let scale = 1.0 / (head_dim as f64).sqrt();
-    // Point-major, head-major: point `i`, head `h`, dimension `e` at `i d + h head_dim + e`.
-    let order = |x: &Features| -> Vec<f64> {
-        let mut out = vec![0.0; x.x.len()];
-        for c in 0..d {
-            let at = (c % heads) * head_dim + c / heads;
-            for (i, &value) in x.row(c).iter().enumerate() {
-                out[i * d + at] = value;
-            }
-        }
-        out
-    };
-    let (qt, kt, vt) = (order(q), order(k), order(v));
-    let mut message = Features::zeros(d, q.n);
-    let mut scores = vec![0.0f64; k.n];
-    let mut acc = vec![0.0f64; head_dim];
-    for i in 0..q.n {
-        for h in 0..heads {
-            let range = h * head_dim..(h + 1) * head_dim;
-            let qi = &qt[i * d..(i + 1) * d][range.clone()];
-            for (j, s) in scores.iter_mut().enumerate() {
-                *s = dot(qi, &kt[j * d..(j + 1) * d][range.clone()]) * scale;
-            }
-            let max = scores.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-            scores.iter_mut().for_each(|s| *s = (*s - max).exp());
-            let total: f64 = scores.iter().sum();
-            acc.fill(0.0);
-            for (j, &p) in scores.iter().enumerate() {
-                let vj = &vt[j * d..(j + 1) * d][range.clone()];
-                acc.iter_mut().zip(vj).for_each(|(a, &v)| *a += p * v);
-            }
-            for (e, &a) in acc.iter().enumerate() {
-                message.row_mut(h + heads * e)[i] = a / total;
-            }
-        }
-    }
-    message
-}
-
-fn l2_normalize(mut x: Features) -> Features {
-    for i in 0..x.n {
-        let norm = (0..x.channels)
-            .map(|c| x.x[c * x.n + i].powi(2))
-            .sum::<f64>()
-            .sqrt()
-            .max(1e-12);
-        for c in 0..x.channels {
-            x.x[c * x.n + i] /= norm;
-        }
-    }
-    x
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1182,82 +1100,132 @@ mod tests {
     /// Every intermediate output of the core's matcher, in the order reported.
     struct Stages(Vec<(Stage, Vec<f32>)>);
 
-    impl gomatch::matcher::Observer<f32> for Stages {
+    impl LayerTap for Stages {}
+
+    impl Observer<f32> for Stages {
         fn features(&mut self, stage: Stage, x: &[f32], _: usize, _: usize) {
             self.0.push((stage, x.to_vec()));
         }
     }
 
     impl Stages {
-        /// Largest difference of `ours` from the core's `stage`, relative to the largest
-        /// magnitude there.
-        fn relative_difference(&self, stage: Stage, ours: &Both) -> f64 {
-            let (_, core) = self
-                .0
-                .iter()
-                .find(|(s, _)| *s == stage)
-                .unwrap_or_else(|| panic!("{stage:?} observed"));
-            assert_eq!(core.len(), ours.f.x.len(), "{stage:?} size");
-            let scale = core.iter().map(|&a| f64::from(a).abs()).fold(0.0, f64::max);
-            let worst = core
-                .iter()
-                .zip(&ours.f.x)
-                .map(|(&a, &b)| (f64::from(a) - b).abs())
-                .fold(0.0, f64::max);
-            worst / scale.max(f64::MIN_POSITIVE)
+        fn get(&self, stage: Stage) -> Features {
+            let (_, x) = self.0.iter().find(|(s, _)| *s == stage).expect("observed");
+            Features {
+                channels: 128,
+                n: x.len() / 128,
+                x: x.iter().map(|&v| f64::from(v)).collect(),
+            }
         }
     }
 
-    /// The calibration's f64 forward pass is the core's network: on the shipped
-    /// checkpoint each stage's output (encoder, the three attention layers, the
-    /// L2-normalised descriptors, both sets) equals the core matcher's (f32) within float
-    /// rounding, so a change to either that the other misses fails here, at its stage.
-    #[test]
-    fn the_f64_forward_pass_follows_the_cores_matcher() {
+    fn points(c: &Captured) -> &Features {
+        match c {
+            Captured::Points(x) | Captured::Edges(x, _) => x,
+        }
+    }
+
+    /// The shipped checkpoint's float model and one calibration pair with its matches.
+    fn float_model() -> Option<(ModelConfig, Vec<u8>)> {
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/gomatch.safetensors");
         let Ok(checkpoint) = std::fs::read(path) else {
             println!("SKIPPED: no shipped checkpoint {path}");
-            return;
+            return None;
         };
-        let (config, tensors) = crate::convert::float_tensors(&checkpoint).expect("checkpoint");
         let (blob, _) = crate::convert::convert(&checkpoint, Precision::F32).expect("f32 blob");
         let model = Model::from_bytes(&blob).expect("blob");
-        let pair = synthetic_pairs(1, 3).remove(0);
-        let mut observed = Stages(Vec::new());
-        // A static, like the other matchers here: 7.5 MB is not for a test thread's stack.
-        static MATCHER: std::sync::Mutex<Matcher<1024, f32>> =
-            std::sync::Mutex::new(Matcher::new());
-        let mut matcher = MATCHER.lock().expect("matcher");
-        matcher
-            .encode_query_observed(&model, &pair.query, &mut observed)
-            .expect("query encodes");
-        matcher
-            .match_view_observed(&model, &pair.db, &mut observed)
-            .expect("pair matches");
-        let precisions = vec![Precision::F32; tensors.len()];
-        let mut engine = Engine {
-            config,
-            float: &tensors,
-            effective: tensors.clone(),
-            precisions: &precisions,
-            options: FitOptions {
-                scale: ScaleSearch::MaxAbs,
-                correct: false,
-            },
-            int8: vec![None; tensors.len()],
+        Some((*model.config(), blob))
+    }
+
+    /// What the tap keeps is what the core's layers read: the encoder's input is the
+    /// sets' coordinates; the cross layer's query reads the first self layer's output of
+    /// the 2D set, then of the 3D set; the classifier reads `[f2d_i; f3d_j]` of the float
+    /// model's matches. Every tensor is read, in an order that follows the network.
+    #[test]
+    fn the_tap_keeps_what_the_core_reads() {
+        let Some((config, blob)) = float_model() else {
+            return;
         };
-        let mut compared = 0;
-        engine
-            .descriptors(std::slice::from_ref(&pair), |stages, ours| {
-                for (stage, x) in stages.into_iter().zip(ours) {
-                    let difference = observed.relative_difference(stage, x);
-                    // Measured: at most 6.4e-6 (the cross layer's view side).
-                    assert!(difference < 1e-4, "{stage:?} differs by {difference:e}");
-                    compared += 1;
-                }
-            })
-            .expect("forward pass");
-        assert_eq!(compared, 10, "five stages of both sets compared");
+        let model = Model::from_bytes(&blob).expect("blob");
+        let pair = synthetic_pairs(1, 3).remove(0);
+        let mut matcher = lock(0).expect("matcher");
+        let mut stages = Stages(Vec::new());
+        matcher
+            .encode_query_observed(&model, &pair.query, &mut stages)
+            .expect("query");
+        let matches = matcher
+            .match_view_observed(&model, &pair.db, &mut stages)
+            .expect("pair")
+            .as_slice()
+            .to_vec();
+        assert!(!matches.is_empty());
+        let run = Run {
+            pair: &pair,
+            matches,
+        };
+        let index = |section, instance, part| {
+            gomatch::weights::tensor_index(&config, section, instance, part).expect("tensor")
+        };
+        let read = |matcher: &mut Matcher<1024, f32>, reach, descriptors, tensor| {
+            run.inputs(matcher, &model, reach, descriptors, &[tensor])
+                .expect("runs")
+        };
+
+        let coordinates = read(
+            &mut matcher,
+            Reach::Encoder,
+            None,
+            index(Section::EncoderInput, 0, 0),
+        );
+        assert_eq!(coordinates.len(), 2);
+        for (x, set) in coordinates.iter().zip([&pair.query, &pair.db]) {
+            let x = points(x);
+            assert_eq!((x.channels, x.n), (2, set.len()));
+            for (i, p) in set.iter().enumerate() {
+                assert_eq!([x.row(0)[i], x.row(1)[i]], p.map(f64::from));
+            }
+        }
+
+        let query = gomatch::weights::CrossLayerWeights::QUERY;
+        let targets = read(
+            &mut matcher,
+            Reach::Pair,
+            None,
+            index(Section::CrossLayer, 0, query),
+        );
+        assert_eq!(targets.len(), 2, "one read per direction");
+        assert_eq!(points(&targets[0]).x, stages.get(Stage::Att0Self2d).x);
+        assert_eq!(points(&targets[1]).x, stages.get(Stage::Att0Self3d).x);
+
+        let descriptors = run.descriptors(&mut matcher, &model).expect("descriptors");
+        let input = read(
+            &mut matcher,
+            Reach::Classifier,
+            Some(&descriptors),
+            index(Section::ClassifierInput, 0, 0),
+        );
+        let (d2, d3) = (stages.get(Stage::Desc2dL2), stages.get(Stage::Desc3dL2));
+        let x = points(&input[0]);
+        assert_eq!(x.n, run.matches.len().max(2));
+        for (m, mt) in run.matches.iter().enumerate() {
+            let (i, j) = (usize::from(mt.i2d), usize::from(mt.i3d));
+            for c in 0..128 {
+                assert_eq!(x.row(c)[m], d2.row(c)[i]);
+                assert_eq!(x.row(128 + c)[m], d3.row(c)[j]);
+            }
+        }
+
+        let order = reading_order(&mut matcher, &model, std::slice::from_ref(&run)).expect("order");
+        let groups = groups(&config, &order).expect("every tensor read");
+        assert_eq!(groups[0], vec![index(Section::EncoderInput, 0, 0)]);
+        let at = |tensor| order.iter().position(|&t| t == tensor).expect("read");
+        let second_self = index(
+            Section::SelfLayer,
+            1,
+            gomatch::weights::SelfLayerWeights::EDGE1,
+        );
+        assert!(at(index(Section::CrossLayer, 0, query)) < at(second_self));
+        assert!(at(second_self) < at(index(Section::ClassifierInput, 0, 0)));
     }
 
     #[test]
@@ -1347,8 +1315,7 @@ mod tests {
             let mut m = Moments::new(cols);
             m.add(x, false);
             let precisions = [Precision::Int8];
-            let mut engine = Engine {
-                config: ModelConfig::REFERENCE,
+            let mut engine = Fitter {
                 float: std::slice::from_ref(&w),
                 effective: vec![w.clone()],
                 precisions: &precisions,
@@ -1361,7 +1328,12 @@ mod tests {
             engine.fit_group(&[0], &m).expect("fits");
             engine.int8
         };
-        let same = run(&Both::exact(f.clone()))[0].clone().expect("int8");
+        let same = run(&Both {
+            f: f.clone(),
+            q: None,
+        })[0]
+            .clone()
+            .expect("int8");
         let nearest = quantize::round_to_nearest(&w, ScaleSearch::MaxAbs);
         assert_eq!(same.levels, nearest.levels);
         let apart = run(&Both {

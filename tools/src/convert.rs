@@ -661,22 +661,20 @@ pub fn int8_tensors(
         Rounding::Gptq => false,
         Rounding::GptqCorrected => true,
     };
-    let reference = write_blob(
-        config,
-        &Options {
-            precision: Precision::F32,
-            keep_f32: vec![],
-            keep_f16: vec![],
-            ..options.clone()
-        },
-        tensors,
-    )?;
+    let f32_options = Options {
+        precision: Precision::F32,
+        keep_f32: vec![],
+        keep_f16: vec![],
+        ..options.clone()
+    };
     let pairs = calibration::synthetic_pairs(options.calibration_pairs, options.calibration_seed);
     let fit = FitOptions {
         scale: options.scale,
         correct,
     };
-    calibration::fit_int8(config, tensors, precisions, &reference, &pairs, fit)
+    calibration::fit_int8(config, tensors, precisions, &pairs, fit, |t| {
+        write_blob(config, &f32_options, t)
+    })
 }
 
 /// Weight bytes and (int8) scale bytes of one tensor.
