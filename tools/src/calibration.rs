@@ -453,16 +453,9 @@ pub fn fit_int8(
 ) -> anyhow::Result<Vec<Option<Int8Tensor>>> {
     let float_blob = f32_blob(tensors)?;
     let float = Model::from_bytes(&float_blob).map_err(|e| anyhow::anyhow!("f32 blob: {e}"))?;
-    let unmatched: Vec<Run> = pairs
-        .iter()
-        .map(|pair| Run {
-            pair,
-            matches: Vec::new(),
-        })
-        .collect();
-    let matches = on_pairs(&unmatched, |_, run, matcher| {
+    let matches = on_pairs(pairs, |_, pair, matcher| {
         let found = matcher
-            .match_pair(&float, &run.pair.query, &run.pair.db)
+            .match_pair(&float, &pair.query, &pair.db)
             .map_err(|e| anyhow::anyhow!("calibration pair: {e}"))?;
         Ok(found.as_slice().to_vec())
     })?;
@@ -482,7 +475,7 @@ pub fn fit_int8(
         let mut matcher = lock(0)?;
         reading_order(&mut matcher, &float, &runs)?
     };
-    let mut descriptors: Option<Vec<[Descriptor; 2]>> = None;
+    let mut descriptors: Option<Vec<PairDescriptors>> = None;
     for group in groups(config, &order)? {
         if !group.iter().any(|&i| precisions[i] == Precision::Int8) {
             fitter.keep_float(&group);
@@ -501,18 +494,24 @@ pub fn fit_int8(
         if reach == Reach::Classifier && descriptors.is_none() {
             // The classifier's layers come last: the descriptors of both paths are final.
             descriptors = Some(on_pairs(&runs, |_, run, matcher| {
-                let q = match &quantised {
+                let quantised = match &quantised {
                     Some(model) => Some(run.descriptors(matcher, model)?),
                     None => None,
                 };
-                Ok([Some(run.descriptors(matcher, &float)?), q])
+                Ok(PairDescriptors {
+                    float: run.descriptors(matcher, &float)?,
+                    quantised,
+                })
             })?);
         }
         let inputs = on_pairs(&runs, |at, run, matcher| {
-            let cached = |path: usize| descriptors.as_ref().and_then(|d| d[at][path].as_ref());
-            let f = run.inputs(matcher, &float, reach, cached(0), &group)?;
+            let cached = descriptors.as_ref().map(|d| &d[at]);
+            let f = run.inputs(matcher, &float, reach, cached.map(|d| &d.float[..]), &group)?;
             let q = match &quantised {
-                Some(model) => Some(run.inputs(matcher, model, reach, cached(1), &group)?),
+                Some(model) => {
+                    let own = cached.and_then(|d| d.quantised.as_deref());
+                    Some(run.inputs(matcher, model, reach, own, &group)?)
+                }
                 None => None,
             };
             Ok((f, q))
@@ -544,12 +543,12 @@ fn lock(worker: usize) -> anyhow::Result<std::sync::MutexGuard<'static, Matcher<
         .map_err(|_| anyhow::anyhow!("matcher lock poisoned"))
 }
 
-/// `work(index, run, matcher)` on every run, spread over up to [`WORKERS`] threads;
-/// results in the runs' order (so the moments are summed in the same order whatever the
-/// thread count).
-fn on_pairs<T: Send>(
-    runs: &[Run<'_>],
-    work: impl Fn(usize, &Run<'_>, &mut Matcher<1024, f32>) -> anyhow::Result<T> + Sync,
+/// `work(index, item, matcher)` on every item (a pair or its run), spread over up to
+/// [`WORKERS`] threads; results in the items' order (so the moments are summed in the same
+/// order whatever the thread count).
+fn on_pairs<I: Sync, T: Send>(
+    runs: &[I],
+    work: impl Fn(usize, &I, &mut Matcher<1024, f32>) -> anyhow::Result<T> + Sync,
 ) -> anyhow::Result<Vec<T>> {
     let workers = std::thread::available_parallelism()
         .map_or(1, |n| n.get())
@@ -588,9 +587,12 @@ fn on_pairs<T: Send>(
         .collect()
 }
 
-/// A pair's L2-normalised descriptors on one path, both sets stacked (`None` without
-/// that path).
-type Descriptor = Option<Vec<f32>>;
+/// A pair's L2-normalised descriptors (both sets stacked) on the float path and, with
+/// error correction, on the quantised one.
+struct PairDescriptors {
+    float: Vec<f32>,
+    quantised: Option<Vec<f32>>,
+}
 
 /// How far into the forward pass a tensor is read, so how much of it must run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -628,7 +630,7 @@ impl Run<'_> {
         matcher: &mut Matcher<1024, f32>,
         model: &Model<'_>,
         reach: Reach,
-        descriptors: Option<&Vec<f32>>,
+        descriptors: Option<&[f32]>,
         group: &[usize],
     ) -> anyhow::Result<Vec<Captured>> {
         let mut tap = Tap::new(*model.config(), group);
@@ -786,8 +788,8 @@ struct Tap {
     config: ModelConfig,
     group: Vec<usize>,
     inputs: Vec<Captured>,
-    /// A set read in tiles: its tensor, its columns so far and how many are filled.
-    tile: Option<(usize, Features, usize)>,
+    /// A set read in tiles: its columns so far and how many are filled.
+    tile: Option<(Features, usize)>,
     order: Vec<usize>,
     /// The L2-normalised query and database descriptors.
     descriptors: [Vec<f32>; 2],
@@ -809,30 +811,25 @@ impl Tap {
     }
 
     fn is_classifier(&self, tensor: usize) -> bool {
-        locate(&self.config, tensor).is_some_and(|slot| {
-            matches!(
-                slot.section,
-                Section::ClassifierInput | Section::ClassifierBlock | Section::ClassifierOutput
-            )
-        })
+        reach(&self.config, tensor).is_ok_and(|r| r == Reach::Classifier)
     }
 
     /// Adds columns of a set: the whole set, or its next tile.
-    fn add_points(&mut self, tensor: usize, x: &Input<'_>) {
+    fn add_points(&mut self, x: &Input<'_>) {
         let columns = Features::of(x);
         if x.points() == x.set() {
             self.inputs.push(Captured::Points(columns));
             return;
         }
-        let (_, set, filled) = self
+        let (set, filled) = self
             .tile
-            .get_or_insert_with(|| (tensor, Features::zeros(columns.channels, x.set()), 0));
+            .get_or_insert_with(|| (Features::zeros(columns.channels, x.set()), 0));
         for c in 0..columns.channels {
             set.row_mut(c)[*filled..*filled + columns.n].copy_from_slice(columns.row(c));
         }
         *filled += columns.n;
         if *filled == set.n {
-            if let Some((_, set, _)) = self.tile.take() {
+            if let Some((set, _)) = self.tile.take() {
                 self.inputs.push(Captured::Points(set));
             }
         }
@@ -851,7 +848,7 @@ impl LayerTap for Tap {
             return;
         }
         match *input {
-            LayerInput::Points(x) => self.add_points(tensor, &x),
+            LayerInput::Points(x) => self.add_points(&x),
             LayerInput::Edges { points, graph, k } => {
                 let lists = graph
                     .iter()

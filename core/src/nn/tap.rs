@@ -1,7 +1,7 @@
 //! Every layer's input as the forward pass reads it, for tools that fit weights to the
 //! network's own activations (the int8 calibration of `gomatch-tools convert`). Each layer
-//! reports its input to a [`LayerTap`] just before it reads it; the matcher's
-//! [`crate::Observer`] is one, and the no-op `()` is compiled away.
+//! reports its input to a [`LayerTap`] (a `&mut dyn LayerTap`: one indirect call per layer)
+//! just before it reads it; the matcher's [`crate::Observer`] is one, `()` ignores them.
 
 use super::linear::Input;
 use crate::limits::MAX_KNN;
