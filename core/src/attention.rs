@@ -9,12 +9,12 @@
 //! an online softmax, so no `N x N x heads` score buffer exists.
 
 use crate::limits::{MAX_FEATURE_DIM, MAX_HEADS, MAX_KNN};
-use crate::nn::blocking;
+use crate::nn::blocking::{self, NORM_CHANNELS};
 use crate::nn::dispatch::{with_fma, Fma, Kernel};
 use crate::nn::linear::{accumulate, chunk_rows, larger, store, store_point_major};
 use crate::nn::{
-    exp, instance_norm, leaky_relu, linear, relu, Input, LayerInput, LayerTap, Moments, StatSum,
-    ROW_BLOCK,
+    exp, instance_norm_rows, leaky_relu, linear, relu, sqrt, Input, LayerInput, LayerTap, Moments,
+    StatSum, ROW_BLOCK,
 };
 use crate::weights::{CrossLayerWeights, Linear, SelfLayerWeights};
 
@@ -64,10 +64,9 @@ pub struct SelfScratch<'s> {
     pub x1: &'s mut [f32],
     /// `x2`, `2d x n`.
     pub x2: &'s mut [f32],
-    /// At least `ROW_BLOCK x n` values: neighbour terms of a chunk of channels.
+    /// At least `(ROW_BLOCK + 1) x n` values: neighbour terms of a chunk of channels and
+    /// per-point maxima.
     pub rows: &'s mut [f32],
-    /// `n` per-point maxima.
-    pub maxima: &'s mut [f32],
     /// `d x FUSE_BLOCK` output block of the fusing conv.
     pub fused: &'s mut [f32],
     /// Any free memory (the matcher's Sinkhorn cost, unused while attention runs): where it
@@ -156,7 +155,6 @@ fn self_layer_with<F: Fma>(
         k,
         s.x1,
         larger(s.spare, s.rows),
-        s.maxima,
     );
     let input = Input::one(s.x1, d, n);
     tap.layer_input(w.edge2_centre.tensor(), &edges(input));
@@ -169,7 +167,6 @@ fn self_layer_with<F: Fma>(
         k,
         s.x2,
         larger(s.spare, s.rows),
-        s.maxima,
     );
     let concatenation = Input::parts([&*x, &*s.x1, &*s.x2], [d, d, 2 * d], n);
     tap.layer_input(w.fuse.tensor(), &LayerInput::Points(concatenation));
@@ -187,16 +184,16 @@ fn self_layer_with<F: Fma>(
         }
         b0 += len;
     }
-    for row in x[..d * n].chunks_exact_mut(n) {
-        instance_norm(row);
-        for v in row.iter_mut() {
-            *v = leaky_relu(*v);
-        }
+    instance_norm_rows(&mut x[..d * n], n);
+    for v in x[..d * n].iter_mut() {
+        *v = leaky_relu(*v);
     }
 }
 
 /// `out = max_k LeakyReLU(IN2d(W [x_i, x_j - x_i]))` over the `k` neighbours, with the
-/// instance norm statistics over all `n x k` edges of each channel.
+/// instance norm statistics over all `n x k` edges of each channel. `scratch` (at least
+/// `(ROW_BLOCK + 1) x n` values) holds the neighbour terms of a chunk of channels, the
+/// per-point maxima of a group of channels and, where there is room, the group's edge values.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn edge_conv<F: Fma>(
@@ -207,102 +204,151 @@ fn edge_conv<F: Fma>(
     graph: &[Neighbours],
     k: usize,
     out: &mut [f32],
-    rows: &mut [f32],
-    maxima: &mut [f32],
+    scratch: &mut [f32],
 ) {
     let n = input.points();
     let channels = centre.rows();
     linear(centre, input, 0..channels, |r, i0, v| {
         store(out, n, r, i0, v)
     });
-    // The edge values of one channel, kept for the variance pass when the scratch has room.
-    let edge_count = if k > 0 && rows.len() >= n * (k + ROW_BLOCK) {
-        n * k
+    // Channels finished together, and the neighbour rows a chunk needs at least.
+    let group = if scratch.len() >= n * (NORM_CHANNELS + NORM_CHANNELS.max(ROW_BLOCK)) {
+        NORM_CHANNELS
+    } else {
+        1
+    };
+    let least_rows = n * group.max(ROW_BLOCK);
+    let (maxima, rest) = scratch.split_at_mut(group * n);
+    // The group's edge values, kept for the variance pass when the scratch has room.
+    let edge_count = if k > 0 && rest.len() >= group * n * k + least_rows {
+        group * n * k
     } else {
         0
     };
-    let (edges, rows) = rows.split_at_mut(edge_count);
-    let chunk = chunk_rows(rows.len(), n);
+    let (edges, rows) = rest.split_at_mut(edge_count);
+    let chunk = chunk_rows(rows.len(), n) / group * group;
     let mut r0 = 0;
     while r0 < channels {
         let r1 = (r0 + chunk).min(channels);
         linear(neighbour, input, r0..r1, |r, i0, v| {
             store(rows, n, r - r0, i0, v)
         });
-        for r in r0..r1 {
-            finish_edge_channel(
-                fma,
-                &mut out[r * n..(r + 1) * n],
-                &rows[(r - r0) * n..(r - r0 + 1) * n],
-                &graph[..n],
+        let mut r = r0;
+        while r < r1 {
+            let g = if r + group <= r1 { group } else { 1 };
+            let channel_group = EdgeChannels {
+                a: &mut out[r * n..(r + g) * n],
+                b: &rows[(r - r0) * n..(r - r0 + g) * n],
+                graph: &graph[..n],
                 k,
-                &mut maxima[..n],
+                maxima: &mut maxima[..g * n],
                 edges,
-            );
+            };
+            if g == NORM_CHANNELS {
+                channel_group.finish::<F, NORM_CHANNELS>(fma);
+            } else {
+                channel_group.finish::<F, 1>(fma);
+            }
+            r += g;
         }
         r0 = r1;
     }
 }
 
-/// Turns the centre term `a` of one channel into the layer output, given the neighbour
-/// term `b`: edge values `a_i + b_j`, their mean and variance over all edges, then
-/// `LeakyReLU((a_i + max_j b_j - mean) / std)`. With room for all `n k` edge values in
-/// `edges` the variance pass reads them back instead of gathering `b_j` again (same sums,
-/// same order).
-#[inline(always)]
-fn finish_edge_channel<F: Fma>(
-    fma: F,
-    a: &mut [f32],
-    b: &[f32],
-    graph: &[Neighbours],
+/// `G` channels of an edge convolution: centre terms `a` (`G x n`, replaced by the layer
+/// output), neighbour terms `b` (`G x n`), and scratch for `G x n` maxima and up to
+/// `n x k x G` edge values.
+struct EdgeChannels<'e, 'g> {
+    a: &'e mut [f32],
+    b: &'e [f32],
+    graph: &'g [Neighbours],
     k: usize,
-    maxima: &mut [f32],
-    edges: &mut [f32],
-) {
-    let mut moments = Moments::default();
-    let deviations = match edges.get_mut(..a.len() * k).filter(|_| k > 0) {
-        Some(edges) => {
-            let rows = a.iter().zip(graph).zip(edges.chunks_exact_mut(k));
-            for (((&ai, neighbours), edge_row), m) in rows.zip(maxima.iter_mut()) {
-                let mut best = f32::NEG_INFINITY;
-                for (&j, e) in neighbours[..k].iter().zip(edge_row) {
-                    let bj = b[usize::from(j)];
-                    *e = ai + bj;
-                    moments.add(*e);
-                    best = best.max(bj);
+    maxima: &'e mut [f32],
+    edges: &'e mut [f32],
+}
+
+impl EdgeChannels<'_, '_> {
+    /// Edge values `a_i + b_j`, their mean and variance over all edges of each channel,
+    /// then `LeakyReLU((a_i + max_j b_j - mean) / std)`. Each channel's sums run over its
+    /// edges in order (points, then neighbours), as one channel alone would; the `G`
+    /// channels' sums overlap in the CPU. With room for all `n k G` edge values the
+    /// variance pass reads them back instead of gathering `b_j` again (same sums).
+    #[inline(always)]
+    fn finish<F: Fma, const G: usize>(self, fma: F) {
+        let EdgeChannels {
+            a,
+            b,
+            graph,
+            k,
+            maxima,
+            edges,
+        } = self;
+        let n = graph.len();
+        let mut moments = [Moments::default(); G];
+        let kept = edges.get_mut(..n * k * G).filter(|_| k > 0);
+        let mut deviations = [StatSum::default(); G];
+        match kept {
+            Some(edges) => {
+                for (i, (neighbours, point_edges)) in
+                    graph.iter().zip(edges.chunks_exact_mut(k * G)).enumerate()
+                {
+                    let ai: [f32; G] = core::array::from_fn(|c| a[c * n + i]);
+                    let mut best = [f32::NEG_INFINITY; G];
+                    for (&j, e) in neighbours[..k].iter().zip(point_edges.chunks_exact_mut(G)) {
+                        let j = usize::from(j);
+                        for c in 0..G {
+                            let bj = b[c * n + j];
+                            e[c] = ai[c] + bj;
+                            moments[c].add(e[c]);
+                            best[c] = best[c].max(bj);
+                        }
+                    }
+                    for (c, &m) in best.iter().enumerate() {
+                        maxima[c * n + i] = m;
+                    }
                 }
-                *m = best;
+                let means = moments.map(|m| m.mean());
+                for e in edges.chunks_exact(G) {
+                    for c in 0..G {
+                        deviations[c].add(Moments::squared_deviation(e[c], means[c]));
+                    }
+                }
             }
-            let mean = moments.mean();
-            let mut deviations = StatSum::default();
-            for &e in edges.iter() {
-                deviations.add(Moments::squared_deviation(e, mean));
+            None => {
+                for (i, neighbours) in graph.iter().enumerate() {
+                    let ai: [f32; G] = core::array::from_fn(|c| a[c * n + i]);
+                    let mut best = [f32::NEG_INFINITY; G];
+                    for &j in &neighbours[..k] {
+                        let j = usize::from(j);
+                        for c in 0..G {
+                            let bj = b[c * n + j];
+                            moments[c].add(ai[c] + bj);
+                            best[c] = best[c].max(bj);
+                        }
+                    }
+                    for (c, &m) in best.iter().enumerate() {
+                        maxima[c * n + i] = m;
+                    }
+                }
+                let means = moments.map(|m| m.mean());
+                for (i, neighbours) in graph.iter().enumerate() {
+                    for &j in &neighbours[..k] {
+                        let j = usize::from(j);
+                        for c in 0..G {
+                            let e = a[c * n + i] + b[c * n + j];
+                            deviations[c].add(Moments::squared_deviation(e, means[c]));
+                        }
+                    }
+                }
             }
-            deviations
         }
-        None => {
-            for ((&ai, neighbours), m) in a.iter().zip(graph).zip(maxima.iter_mut()) {
-                let mut best = f32::NEG_INFINITY;
-                for &j in &neighbours[..k] {
-                    let bj = b[usize::from(j)];
-                    moments.add(ai + bj);
-                    best = best.max(bj);
-                }
-                *m = best;
+        let rows = a.chunks_exact_mut(n).zip(maxima.chunks_exact(n));
+        for ((row, row_maxima), (m, d)) in rows.zip(moments.iter().zip(&deviations)) {
+            let normalizer = m.normalizer(d);
+            for (ai, &best) in row.iter_mut().zip(row_maxima) {
+                *ai = leaky_relu(normalizer.apply_with(fma, *ai + best));
             }
-            let mean = moments.mean();
-            let mut deviations = StatSum::default();
-            for (&ai, neighbours) in a.iter().zip(graph) {
-                for &j in &neighbours[..k] {
-                    deviations.add(Moments::squared_deviation(ai + b[usize::from(j)], mean));
-                }
-            }
-            deviations
         }
-    };
-    let normalizer = moments.normalizer(&deviations);
-    for (ai, &m) in a.iter_mut().zip(maxima.iter()) {
-        *ai = leaky_relu(normalizer.apply_with(fma, *ai + m));
     }
 }
 
@@ -360,11 +406,9 @@ pub fn cross_layer(
     linear(&w.mlp_hidden, &concatenation, 0..h, |r, i0, v| {
         store(hidden, nx, r, i0, v)
     });
-    for row in hidden[..h * nx].chunks_exact_mut(nx) {
-        instance_norm(row);
-        for v in row.iter_mut() {
-            *v = relu(*v);
-        }
+    instance_norm_rows(&mut hidden[..h * nx], nx);
+    for v in hidden[..h * nx].iter_mut() {
+        *v = relu(*v);
     }
     let rectified = Input::one(hidden, h, nx);
     tap.layer_input(w.mlp_out.tensor(), &LayerInput::Points(rectified));
@@ -436,7 +480,7 @@ fn attend_vectorised(shape: &AttentionShape, q: &mut [f32], k: &[f32], v: &[f32]
         ns,
     } = *shape;
     let d = heads * head_dim;
-    let sqrt_dim = libm::sqrtf(head_dim as f32);
+    let sqrt_dim = sqrt(head_dim as f32);
     let mut queries = [[0.0f32; QUERY_BLOCK]; MAX_FEATURE_DIM];
     let mut acc = [[0.0f32; MAX_FEATURE_DIM]; QUERY_BLOCK];
     let mut scores = [[[0.0f32; SOURCE_BLOCK]; MAX_HEADS]; QUERY_BLOCK];
@@ -461,7 +505,7 @@ fn attend_vectorised(shape: &AttentionShape, q: &mut [f32], k: &[f32], v: &[f32]
             for b in 0..QUERY_BLOCK {
                 for h in 0..heads {
                     let s = &mut scores[b][h][..len];
-                    let block_max = s.iter().fold(f32::NEG_INFINITY, |m, &x| m.max(x));
+                    let block_max = lane_max(s);
                     if block_max > max[b][h] {
                         let correction = softmax_weight(max[b][h] - block_max);
                         total[b][h] *= correction;
@@ -509,14 +553,19 @@ fn score_tiles(
     let mut t0 = 0;
     while t0 < len {
         let width = LANES.min(len - t0);
-        let tile = if width == LANES {
-            score_tile::<true>(shape, h, queries, k, j0 + t0, width)
+        if width == LANES {
+            let tile = score_tile::<true>(shape, h, queries, k, j0 + t0, width);
+            for (b, row) in tile.iter().enumerate() {
+                if let Some(out) = scores[b][h][t0..].first_chunk_mut::<LANES>() {
+                    *out = row.map(|x| x / sqrt_dim);
+                }
+            }
         } else {
-            score_tile::<false>(shape, h, queries, k, j0 + t0, width)
-        };
-        for (b, row) in tile.iter().enumerate() {
-            for (l, &x) in row[..width].iter().enumerate() {
-                scores[b][h][t0 + l] = x / sqrt_dim;
+            let tile = score_tile::<false>(shape, h, queries, k, j0 + t0, width);
+            for (b, row) in tile.iter().enumerate() {
+                for (l, &x) in row[..width].iter().enumerate() {
+                    scores[b][h][t0 + l] = x / sqrt_dim;
+                }
             }
         }
         t0 += width;
@@ -563,14 +612,21 @@ fn message_tiles(
     while e0 < head_dim {
         let width = LANES.min(head_dim - e0);
         let first = h * head_dim + e0;
-        let tile = if width == LANES {
-            message_tile::<true>(shape, h, p, v, j0, len, first, width)
+        if width == LANES {
+            let tile = message_tile::<true>(shape, h, p, v, j0, len, first, width);
+            for (a, row) in acc.iter_mut().zip(&tile) {
+                if let Some(lanes) = a[first..].first_chunk_mut::<LANES>() {
+                    for (x, &y) in lanes.iter_mut().zip(row) {
+                        *x += y;
+                    }
+                }
+            }
         } else {
-            message_tile::<false>(shape, h, p, v, j0, len, first, width)
-        };
-        for (a, row) in acc.iter_mut().zip(&tile) {
-            for (x, &y) in a[first..first + width].iter_mut().zip(row) {
-                *x += y;
+            let tile = message_tile::<false>(shape, h, p, v, j0, len, first, width);
+            for (a, row) in acc.iter_mut().zip(&tile) {
+                for (x, &y) in a[first..first + width].iter_mut().zip(row) {
+                    *x += y;
+                }
             }
         }
         e0 += width;
@@ -642,7 +698,25 @@ fn softmax_weight(x: f32) -> f32 {
 /// width), so that the softmax totals have the same bits everywhere.
 const SUM_LANES: usize = 8;
 
+/// The largest of `values` (`-inf` for none; NaNs skipped), over [`SUM_LANES`] interleaved
+/// lanes so that it vectorises. The same value as a fold in order: `max` is exact and
+/// order-free up to the sign of a zero maximum, which only reaches `exp(x - max)`, where it
+/// does not change the result.
+#[inline(always)]
+fn lane_max(values: &[f32]) -> f32 {
+    let mut lanes = [f32::NEG_INFINITY; SUM_LANES];
+    let mut chunks = values.chunks_exact(SUM_LANES);
+    for chunk in &mut chunks {
+        for l in 0..SUM_LANES {
+            lanes[l] = lanes[l].max(chunk[l]);
+        }
+    }
+    let rest = chunks.remainder().iter();
+    rest.chain(&lanes).fold(f32::NEG_INFINITY, |m, &x| m.max(x))
+}
+
 /// Sum of the values in [`SUM_LANES`] interleaved partial sums, then across them in order.
+#[inline(always)]
 fn lane_sum(values: &[f32]) -> f32 {
     let mut lanes = [0.0f32; SUM_LANES];
     let mut chunks = values.chunks_exact(SUM_LANES);
@@ -749,38 +823,59 @@ mod tests {
         }
     }
 
-    /// The factored edge statistics equal the ones of the explicit edge list.
+    /// The factored edge statistics equal the ones of the explicit edge list, and a channel
+    /// gives the same bits alone or in a group, with its edge values gathered twice or kept.
     #[test]
-    fn edge_channel_matches_explicit_edges() {
-        let a = [0.5f32, -1.0, 2.0, 0.25];
-        let b = [1.0f32, 3.0, -2.0, 0.5];
+    fn edge_channels_match_explicit_edges() {
+        let a = [0.5f32, -1.0, 2.0, 0.25, 1.5, 0.0, -0.75, 3.0];
+        let b = [1.0f32, 3.0, -2.0, 0.5, -1.25, 0.125, 2.5, -0.5];
         let mut graph = [[0u16; MAX_KNN]; 4];
         for (i, g) in graph.iter_mut().enumerate() {
             g[0] = ((i + 1) % 4) as u16;
             g[1] = ((i + 2) % 4) as u16;
         }
-        let mut edges = [0.0f32; 8];
-        for i in 0..4 {
-            for t in 0..2 {
-                edges[i * 2 + t] = a[i] + b[usize::from(graph[i][t])];
-            }
-        }
-        let mut normed = edges;
-        instance_norm(&mut normed);
-        // Without room for the edge values (gathered twice) and with it (read back).
-        let finish = |edge_values: &mut [f32]| {
+        let finish = |channels: core::ops::Range<usize>, keep: bool| {
+            let (first, g) = (channels.start, channels.len());
             let mut out = a;
-            let mut maxima = [0.0; 4];
+            let mut maxima = [0.0; 8];
+            let mut edges = [0.0; 16];
+            let group = EdgeChannels {
+                a: &mut out[4 * first..4 * (first + g)],
+                b: &b[4 * first..4 * (first + g)],
+                graph: &graph,
+                k: 2,
+                maxima: &mut maxima[..4 * g],
+                edges: if keep { &mut edges[..8 * g] } else { &mut [] },
+            };
             let portable = crate::nn::dispatch::Portable;
-            finish_edge_channel(portable, &mut out, &b, &graph, 2, &mut maxima, edge_values);
+            match g {
+                1 => group.finish::<_, 1>(portable),
+                _ => group.finish::<_, 2>(portable),
+            }
             out
         };
-        let gathered = finish(&mut []);
-        let kept = finish(&mut [0.0; 8]);
-        for i in 0..4 {
-            let expected = leaky_relu(normed[i * 2]).max(leaky_relu(normed[i * 2 + 1]));
-            assert!((gathered[i] - expected).abs() < 1e-6, "{i}");
-            assert_eq!(gathered[i].to_bits(), kept[i].to_bits(), "{i}");
+        for channel in 0..2 {
+            let (a, b) = (&a[4 * channel..][..4], &b[4 * channel..][..4]);
+            let mut normed = [0.0f32; 8];
+            for i in 0..4 {
+                for t in 0..2 {
+                    normed[i * 2 + t] = a[i] + b[usize::from(graph[i][t])];
+                }
+            }
+            crate::nn::instance_norm(&mut normed);
+            let alone = finish(channel..channel + 1, false);
+            for i in 0..4 {
+                let at = 4 * channel + i;
+                let expected = leaky_relu(normed[i * 2]).max(leaky_relu(normed[i * 2 + 1]));
+                assert!((alone[at] - expected).abs() < 1e-6, "{at}");
+                for other in [
+                    finish(channel..channel + 1, true),
+                    finish(0..2, false),
+                    finish(0..2, true),
+                ] {
+                    assert_eq!(alone[at].to_bits(), other[at].to_bits(), "{at}");
+                }
+            }
         }
     }
 
@@ -809,16 +904,11 @@ mod tests {
                 std::vec![0.0; d * n],
                 std::vec![0.0; 2 * d * n],
             );
-            let (mut rows, mut maxima, mut fused) = (
-                std::vec![0.0; ROW_BLOCK * n],
-                std::vec![0.0; n],
-                std::vec![0.0; d],
-            );
+            let (mut rows, mut fused) = (std::vec![0.0; (ROW_BLOCK + 1) * n], std::vec![0.0; d]);
             let scratch = SelfScratch {
                 x1: &mut x1,
                 x2: &mut x2,
                 rows: &mut rows,
-                maxima: &mut maxima,
                 fused: &mut fused,
                 spare,
             };

@@ -508,12 +508,10 @@ fn self_scratch<'s, S: PlanScalar>(
     n: usize,
 ) -> SelfScratch<'s> {
     let (x1, x2) = pool.split_at_mut(d * n);
-    let (maxima, rows) = rows.split_at_mut(n);
     SelfScratch {
         x1,
         x2,
         rows,
-        maxima,
         fused,
         spare: bytemuck::pod_align_to_mut::<S, f32>(plan).1,
     }

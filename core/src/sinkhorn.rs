@@ -8,8 +8,8 @@
 //! evaluated on demand from the cost and the potentials `u`, `v`.
 
 use crate::nn::dispatch::{f16_to_f32, with_fma, Fma, Kernel, Portable};
-use crate::nn::linear::WeightRows;
-use crate::nn::{exp, linear, Input};
+use crate::nn::linear::{linear_with, WeightRows};
+use crate::nn::{exp, sqrt, Input, COL_BLOCK};
 
 /// Storage type of the cost matrix.
 pub trait PlanScalar: bytemuck::Pod {
@@ -22,6 +22,9 @@ pub trait PlanScalar: bytemuck::Pod {
     /// A stored row as f32: the row itself for f32, converted into `buf` (with the CPU's
     /// conversion instruction where `fma` has one) otherwise.
     fn row_f32<'a, F: Fma>(fma: F, row: &'a [Self], buf: &'a mut [f32]) -> &'a [f32];
+    /// Rounds `values` into `out` (as long), as [`PlanScalar::from_f32`] does, with the
+    /// CPU's conversion instruction where `fma` has one.
+    fn store_row<F: Fma>(fma: F, values: &[f32], out: &mut [Self]);
 }
 
 impl PlanScalar for f32 {
@@ -37,6 +40,10 @@ impl PlanScalar for f32 {
     #[inline(always)]
     fn row_f32<'a, F: Fma>(_fma: F, row: &'a [Self], _buf: &'a mut [f32]) -> &'a [f32] {
         row
+    }
+    #[inline(always)]
+    fn store_row<F: Fma>(_fma: F, values: &[f32], out: &mut [Self]) {
+        out.copy_from_slice(values);
     }
 }
 
@@ -55,6 +62,10 @@ impl PlanScalar for half::f16 {
         let out = &mut buf[..row.len()];
         fma.widen_f16(bytemuck::cast_slice(row), out);
         out
+    }
+    #[inline(always)]
+    fn store_row<F: Fma>(fma: F, values: &[f32], out: &mut [Self]) {
+        fma.narrow_f16(values, bytemuck::cast_slice_mut(out));
     }
 }
 
@@ -125,26 +136,66 @@ pub fn cost_matrix<S: PlanScalar>(
     plan: &mut [S],
     norms: &mut [f32],
 ) {
-    let (norm2, norm3) = norms.split_at_mut(n2);
-    squared_norms(desc2, channels, n2, norm2);
-    squared_norms(desc3, channels, n3, norm3);
-    let rows = PointRows {
-        x: desc3,
-        n: n3,
+    with_fma(CostMatrix {
+        desc3,
+        n3,
+        desc2,
+        n2,
         channels,
-    };
-    linear(
-        &rows,
-        &Input::one(desc2, channels, n2),
-        0..n3,
-        |i, j0, dots| {
-            let out = &mut plan[i * n2 + j0..i * n2 + j0 + dots.len()];
-            for ((o, &dot), &a) in out.iter_mut().zip(dots).zip(&norm2[j0..]) {
-                let squared = (a + -2.0 * dot) + norm3[i];
-                *o = S::from_f32(libm::sqrtf(squared.max(1e-30)));
-            }
-        },
-    );
+        plan,
+        norms,
+    });
+}
+
+/// The arguments of one [`cost_matrix`] call.
+struct CostMatrix<'a, S> {
+    desc3: &'a [f32],
+    n3: usize,
+    desc2: &'a [f32],
+    n2: usize,
+    channels: usize,
+    plan: &'a mut [S],
+    norms: &'a mut [f32],
+}
+
+impl<S: PlanScalar> Kernel<()> for CostMatrix<'_, S> {
+    /// The dot products on the f32 linear kernel; square roots and the rounding into the
+    /// plan's storage with the CPU's instructions (correctly rounded: the same bits).
+    #[inline(always)]
+    fn run<F: Fma>(self, fma: F) {
+        let CostMatrix {
+            desc3,
+            n3,
+            desc2,
+            n2,
+            channels,
+            plan,
+            norms,
+        } = self;
+        let (norm2, norm3) = norms.split_at_mut(n2);
+        squared_norms(desc2, channels, n2, norm2);
+        squared_norms(desc3, channels, n3, norm3);
+        let rows = PointRows {
+            x: desc3,
+            n: n3,
+            channels,
+        };
+        linear_with(
+            fma,
+            &rows,
+            &Input::one(desc2, channels, n2),
+            0..n3,
+            |i, j0, dots| {
+                let mut distances = [0.0f32; COL_BLOCK];
+                let distances = &mut distances[..dots.len()];
+                for ((d, &dot), &a) in distances.iter_mut().zip(dots).zip(&norm2[j0..]) {
+                    let squared = (a + -2.0 * dot) + norm3[i];
+                    *d = sqrt(squared.max(1e-30));
+                }
+                S::store_row(fma, distances, &mut plan[i * n2 + j0..][..dots.len()]);
+            },
+        );
+    }
 }
 
 /// The solved transport problem: cost, potentials and the plan on demand.
@@ -327,8 +378,11 @@ fn sinkhorn_vectorised<F: Fma, S: PlanScalar>(fma: F, args: Sinkhorn<'_, S>) -> 
         iterations += 1;
         u_prev.copy_from_slice(u);
         // Rows: u_i = eps (log mu_i - LSE_j M_ij) + u_i; then the column maxima of M
-        // with the new u_i while the row is at hand.
-        col_max.fill(f32::NEG_INFINITY);
+        // with the new u_i while the row is at hand, each row's into the other of two
+        // buffers (`col_sum` is free until the columns' pass): updated in place, they
+        // compile to masked stores, which are slow on AMD CPUs.
+        let (mut maxima, mut next) = (&mut *col_max, &mut *col_sum);
+        maxima.fill(f32::NEG_INFINITY);
         for (i, ui) in u.iter_mut().enumerate() {
             let costs = cost_row(fma, cost, n3, n2, i, buf, bins);
             let old = *ui;
@@ -339,11 +393,17 @@ fn sinkhorn_vectorised<F: Fma, S: PlanScalar>(fma: F, args: Sinkhorn<'_, S>) -> 
             let target = if i < n3 { log_mu } else { log_mu_bin };
             let new = eps * (target - logsumexp_in_place(row)) + old;
             *ui = new;
-            for ((m, &c), &vj) in col_max.iter_mut().zip(costs).zip(v.iter()) {
+            let columns = next.iter_mut().zip(maxima.iter()).zip(costs).zip(v.iter());
+            for (((m, &before), &c), &vj) in columns {
                 let x = log_plan(c, new, vj);
-                *m = if x > *m { x } else { *m };
+                *m = if x > before { x } else { before };
             }
-            col_max[n2] = col_max[n2].max(log_plan(bin, new, v[n2]));
+            let x = log_plan(bin, new, v[n2]);
+            next[n2] = if x > maxima[n2] { x } else { maxima[n2] };
+            core::mem::swap(&mut maxima, &mut next);
+        }
+        if (n3 + 1) % 2 == 1 {
+            col_max.copy_from_slice(col_sum);
         }
         // Columns with the new u: v_j = eps (log nu_j - LSE_i M_ij) + v_j.
         col_sum.fill(0.0);
@@ -369,7 +429,7 @@ fn sinkhorn_vectorised<F: Fma, S: PlanScalar>(fma: F, args: Sinkhorn<'_, S>) -> 
             .zip(u_prev.iter())
             .map(|(&a, &b)| (a - b) * (a - b))
             .sum();
-        if libm::sqrtf(change) < params.stop {
+        if sqrt(change) < params.stop {
             break;
         }
     }

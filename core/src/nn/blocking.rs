@@ -27,6 +27,9 @@ mod sizes {
     pub const ATTENTION_QUERIES: usize = 8;
     /// Attention, width of the inner register tiles.
     pub const ATTENTION_LANES: usize = 8;
+    /// Channels whose instance-norm statistics are summed together: eight independent f64
+    /// sums hide the add's latency (one channel at a time waits for each add).
+    pub const NORM_CHANNELS: usize = 8;
 }
 
 #[cfg(target_arch = "arm")]
@@ -50,4 +53,7 @@ mod sizes {
     pub const ATTENTION_QUERIES: usize = 6;
     /// Attention, width of the inner register tiles.
     pub const ATTENTION_LANES: usize = 4;
+    /// Channels whose instance-norm statistics are summed together (four f64 sums, their
+    /// running maxima and centre terms stay in the FPU's registers).
+    pub const NORM_CHANNELS: usize = 4;
 }

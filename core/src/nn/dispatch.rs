@@ -14,7 +14,7 @@ use super::integer::{self, BlockSums, TilePairs, WeightPairs};
 
 /// The CPU's multiply-add instructions: a fused multiply-add `a * b + c` with a single
 /// rounding (the f32 kernels) and the exact int16 pair multiply-add (the integer kernel);
-/// also its exact f16 -> f32 conversion (Sinkhorn's f16 cost rows).
+/// also its exact f16 <-> f32 conversions (Sinkhorn's f16 cost rows).
 pub trait Fma: Copy {
     /// `a * b + c`, rounded once.
     fn mul_add(self, a: f32, b: f32, c: f32) -> f32;
@@ -66,6 +66,23 @@ pub trait Fma: Copy {
             }
         }
     }
+
+    /// `out[i]` = the f16 bits of `values[i]` rounded to nearest, ties to even (`out` as
+    /// long as `values`), the same bits for every value that is not a NaN ([`f32_to_f16`];
+    /// F16C's `vcvtps2ph` on x86-64).
+    #[inline(always)]
+    fn narrow_f16(self, values: &[f32], out: &mut [u16]) {
+        for (o, &x) in out.iter_mut().zip(values) {
+            *o = f32_to_f16(x);
+        }
+    }
+}
+
+/// `f32 -> f16` rounded to nearest, ties to even (IEEE 754 `convertFormat`; overflow to
+/// infinity), in software (`half`).
+#[inline(always)]
+fn f32_to_f16(x: f32) -> u16 {
+    half::f16::from_f32(x).to_bits()
 }
 
 /// [`f16_to_f32`] with the FPU's `vcvtb.f32.f16` (Cortex-M4F/M7 FPUs have it; the core's
@@ -205,6 +222,31 @@ impl Fma for X86Fma {
             *f = f16_to_f32(h);
         }
     }
+
+    #[inline(always)]
+    #[allow(unsafe_code)]
+    fn narrow_f16(self, values: &[f32], out: &mut [u16]) {
+        use core::arch::x86_64::{
+            _mm256_cvtps_ph, _mm256_loadu_ps, _mm_storeu_si128, _MM_FROUND_TO_NEAREST_INT,
+        };
+        let values = &values[..out.len()];
+        let mut floats = values.chunks_exact(8);
+        let mut halves = out.chunks_exact_mut(8);
+        for (f, h) in (&mut floats).zip(&mut halves) {
+            // SAFETY: an `X86Fma` exists only when `detect` found F16C; `f` holds 8 f32
+            // (32 bytes) and `h` 8 f16 (16 bytes), read and written unaligned. The immediate
+            // rounds to nearest even whatever MXCSR says.
+            unsafe {
+                _mm_storeu_si128(
+                    h.as_mut_ptr().cast(),
+                    _mm256_cvtps_ph::<_MM_FROUND_TO_NEAREST_INT>(_mm256_loadu_ps(f.as_ptr())),
+                )
+            }
+        }
+        for (h, &f) in halves.into_remainder().iter_mut().zip(floats.remainder()) {
+            *h = f32_to_f16(f);
+        }
+    }
 }
 
 /// `cpuid` leaf 1: FMA, OSXSAVE, AVX and F16C; `xgetbv`: the OS saves the SSE and AVX state;
@@ -318,6 +360,42 @@ mod tests {
             }
             assert!(
                 out[row.len()..].iter().all(|x| x.is_nan()),
+                "wrote past the row"
+            );
+        }
+    }
+
+    struct Narrow<'a>(&'a [f32], &'a mut [u16]);
+
+    impl Kernel<()> for Narrow<'_> {
+        fn run<F: Fma>(self, fma: F) {
+            fma.narrow_f16(self.0, self.1);
+        }
+    }
+
+    /// Every 61st f32 bit pattern that is not a NaN (normal, subnormal and overflowing
+    /// magnitudes, both signs, every rounding case of the low bits), in rows of every
+    /// length mod 8: the dispatched variant gives half's bits.
+    #[test]
+    fn f32_rows_narrow_like_half() {
+        let values: std::vec::Vec<f32> = (0..=u32::MAX)
+            .step_by(61)
+            .map(f32::from_bits)
+            .filter(|x| !x.is_nan())
+            .collect();
+        let mut at = 0;
+        for len in (0..).map(|i| 1021 + i % 8) {
+            let Some(row) = values.get(at..at + len) else {
+                break;
+            };
+            at += len;
+            let mut out = std::vec![0x7e00u16; len + 3];
+            with_fma(Narrow(row, &mut out[..len]));
+            for (&x, &h) in row.iter().zip(&out) {
+                assert_eq!(h, half::f16::from_f32(x).to_bits(), "{x:e}");
+            }
+            assert!(
+                out[len..].iter().all(|&h| h == 0x7e00),
                 "wrote past the row"
             );
         }

@@ -1,6 +1,8 @@
 //! Instance normalisation, L2 normalisation and the activations.
 
+use super::blocking::NORM_CHANNELS;
 use super::dispatch::{with_fma, Fma, Kernel, Portable};
+use super::sqrt::sqrt;
 
 /// Epsilon of the reference's `InstanceNorm1d/2d` (affine = false).
 pub const INSTANCE_NORM_EPS: f64 = 1e-5;
@@ -61,9 +63,9 @@ impl StatSum {
 /// `1 / sqrt(variance + eps)`: in f64 as the reference, in f32 with `f32-statistics`.
 fn inverse_deviation(variance: f32) -> f32 {
     #[cfg(not(feature = "f32-statistics"))]
-    let inverse = (1.0 / libm::sqrt(f64::from(variance) + INSTANCE_NORM_EPS)) as f32;
+    let inverse = (1.0 / super::sqrt::sqrt_f64(f64::from(variance) + INSTANCE_NORM_EPS)) as f32;
     #[cfg(feature = "f32-statistics")]
-    let inverse = 1.0 / libm::sqrtf(variance + INSTANCE_NORM_EPS as f32);
+    let inverse = 1.0 / sqrt(variance + INSTANCE_NORM_EPS as f32);
     inverse
 }
 
@@ -143,34 +145,59 @@ impl Normalizer {
 /// Instance norm of one channel over its points, in place: `(x - mean) / sqrt(var + eps)`
 /// with the biased variance (supp. "Feature Encoder"; `InstanceNorm1d`, affine = false).
 pub fn instance_norm(x: &mut [f32]) {
-    with_fma(InstanceNorm(x));
+    instance_norm_rows(x, x.len());
 }
 
-/// The argument of one [`instance_norm`] call.
-struct InstanceNorm<'a>(&'a mut [f32]);
+/// [`instance_norm`] of every row (channel) of `x`, `n` values a row. Rows are taken
+/// [`NORM_CHANNELS`] at a time: each row's sums still run over its values in order, and the
+/// rows' independent sums overlap in the CPU (one row alone waits for each f64 add).
+pub fn instance_norm_rows(x: &mut [f32], n: usize) {
+    if n > 0 {
+        with_fma(InstanceNormRows { x, n });
+    }
+}
 
-impl Kernel<()> for InstanceNorm<'_> {
+/// The arguments of one [`instance_norm_rows`] call.
+struct InstanceNormRows<'a> {
+    x: &'a mut [f32],
+    n: usize,
+}
+
+impl Kernel<()> for InstanceNormRows<'_> {
     #[inline(always)]
     fn run<F: Fma>(self, fma: F) {
-        instance_norm_with(fma, self.0);
+        let n = self.n;
+        let mut groups = self.x.chunks_exact_mut(n * NORM_CHANNELS);
+        for group in &mut groups {
+            normalize_rows::<F, NORM_CHANNELS>(fma, group, n);
+        }
+        for row in groups.into_remainder().chunks_exact_mut(n) {
+            normalize_rows::<F, 1>(fma, row, n);
+        }
     }
 }
 
-/// [`instance_norm`] with the given [`Fma`].
+/// Instance norm of the `G` rows of `x` (`G x n`), their statistics summed side by side.
 #[inline(always)]
-fn instance_norm_with<F: Fma>(fma: F, x: &mut [f32]) {
-    let mut moments = Moments::default();
-    for &v in x.iter() {
-        moments.add(v);
+fn normalize_rows<F: Fma, const G: usize>(fma: F, x: &mut [f32], n: usize) {
+    let mut moments = [Moments::default(); G];
+    for i in 0..n {
+        for (c, m) in moments.iter_mut().enumerate() {
+            m.add(x[c * n + i]);
+        }
     }
-    let mean = moments.mean();
-    let mut deviations = StatSum::default();
-    for &v in x.iter() {
-        deviations.add(Moments::squared_deviation(v, mean));
+    let means = moments.map(|m| m.mean());
+    let mut deviations = [StatSum::default(); G];
+    for i in 0..n {
+        for (c, d) in deviations.iter_mut().enumerate() {
+            d.add(Moments::squared_deviation(x[c * n + i], means[c]));
+        }
     }
-    let normalizer = moments.normalizer(&deviations);
-    for v in x.iter_mut() {
-        *v = normalizer.apply_with(fma, *v);
+    for ((row, m), d) in x.chunks_exact_mut(n).zip(&moments).zip(&deviations) {
+        let normalizer = m.normalizer(d);
+        for v in row.iter_mut() {
+            *v = normalizer.apply_with(fma, *v);
+        }
     }
 }
 
@@ -184,14 +211,13 @@ pub fn relu(x: f32) -> f32 {
     }
 }
 
-/// Leaky ReLU with slope 0.2 (supp. eq. 4-5).
+/// Leaky ReLU with slope 0.2 (supp. eq. 4-5): `x` where `x > 0`, else `0.2 x`, written as
+/// `max(x, 0.2 x)` (the same value for every `x`, NaN included), which compiles to plain
+/// vector code where a select between `x` and `0.2 x` in place became masked stores, slow
+/// on AMD CPUs.
 #[inline(always)]
 pub fn leaky_relu(x: f32) -> f32 {
-    if x > 0.0 {
-        x
-    } else {
-        0.2 * x
-    }
+    x.max(0.2 * x)
 }
 
 /// Divides every point (column) of a channel-major `channels x n` matrix by
@@ -205,7 +231,7 @@ pub fn l2_normalize_points(x: &mut [f32], channels: usize, n: usize, norms: &mut
         }
     }
     for s in norms.iter_mut() {
-        *s = libm::sqrtf(*s).max(L2_EPS);
+        *s = sqrt(*s).max(L2_EPS);
     }
     for row in x[..channels * n].chunks_exact_mut(n) {
         for (v, &s) in row.iter_mut().zip(norms.iter()) {
@@ -245,6 +271,29 @@ mod tests {
         assert_eq!(relu(3.0), 3.0);
         assert_eq!(leaky_relu(-2.0), -0.4);
         assert_eq!(leaky_relu(3.0), 3.0);
+    }
+
+    /// `max(x, 0.2 x)` is the select of the definition, bit for bit, on every 97th f32
+    /// (both zeros, subnormals, infinities; NaN stays NaN).
+    #[test]
+    fn leaky_relu_is_its_definition() {
+        let select = |x: f32| if x > 0.0 { x } else { 0.2 * x };
+        let specials = [
+            0.0f32,
+            -0.0,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            1e-45,
+            -1e-45,
+        ];
+        let sweep = (0..=u32::MAX).step_by(97).map(f32::from_bits);
+        for x in specials.into_iter().chain(sweep) {
+            if x.is_nan() {
+                assert!(leaky_relu(x).is_nan());
+            } else {
+                assert_eq!(leaky_relu(x).to_bits(), select(x).to_bits(), "{x:e}");
+            }
+        }
     }
 
     #[test]

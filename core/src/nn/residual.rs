@@ -3,7 +3,7 @@
 //! convolutions, each computed as the reference does (no folding, see [`crate::weights`]).
 
 use super::linear::{chunk_rows, larger, linear, store, Input};
-use super::norm::{instance_norm, relu};
+use super::norm::{instance_norm_rows, relu};
 use super::tap::{LayerInput, LayerTap};
 use crate::weights::ResidualBlockWeights;
 
@@ -22,9 +22,7 @@ pub fn residual_block(
     let d = w.conv1.rows();
     let (inner, tile) = hidden.split_at_mut(d * n);
     conv1_of_preconv(w, x, n, inner, tile, tap);
-    for row in inner.chunks_exact_mut(n) {
-        instance_norm(row);
-    }
+    instance_norm_rows(inner, n);
     let input = Input::one(inner, d, n);
     tap.layer_input(w.conv2.tensor(), &LayerInput::Points(input));
     let rows = larger(tile, rows);
@@ -35,12 +33,10 @@ pub fn residual_block(
         linear(&w.conv2, &input, r0..r1, |r, i0, v| {
             store(rows, n, r - r0, i0, v)
         });
-        for r in r0..r1 {
-            let z = &mut rows[(r - r0) * n..(r - r0 + 1) * n];
-            instance_norm(z);
-            for (xv, &zv) in x[r * n..(r + 1) * n].iter_mut().zip(z.iter()) {
-                *xv += relu(zv);
-            }
+        let z = &mut rows[..(r1 - r0) * n];
+        instance_norm_rows(z, n);
+        for (xv, &zv) in x[r0 * n..r1 * n].iter_mut().zip(z.iter()) {
+            *xv += relu(zv);
         }
         r0 = r1;
     }
@@ -104,8 +100,8 @@ mod tests {
         let mut rows = [0.0; crate::nn::ROW_BLOCK * 3];
         residual_block(&w, &mut x, 3, &mut hidden, &mut rows, &mut ());
         let mut z = [1.0f32, 2.0, 3.0];
-        instance_norm(&mut z);
-        instance_norm(&mut z);
+        crate::nn::instance_norm(&mut z);
+        crate::nn::instance_norm(&mut z);
         assert_eq!(x[..3], [1.0, 2.0, 3.0 + z[2]]);
         assert_eq!(x[3..], [5.0, 5.0, 5.0]);
     }
