@@ -9,7 +9,7 @@
 //! an online softmax, so no `N x N x heads` score buffer exists.
 
 use crate::limits::{MAX_FEATURE_DIM, MAX_HEADS, MAX_KNN};
-use crate::nn::blocking::{self, NORM_CHANNELS};
+use crate::nn::blocking::{self, EDGE_CHANNELS};
 use crate::nn::dispatch::{with_fma, Fma, Kernel};
 use crate::nn::linear::{accumulate, chunk_rows, larger, store, store_point_major};
 use crate::nn::{
@@ -212,13 +212,14 @@ fn edge_conv<F: Fma>(
         store(out, n, r, i0, v)
     });
     // Channels finished together, and the neighbour rows a chunk needs at least.
-    let group = if scratch.len() >= n * (NORM_CHANNELS + NORM_CHANNELS.max(ROW_BLOCK)) {
-        NORM_CHANNELS
+    let group = if scratch.len() >= n * (2 * EDGE_CHANNELS + EDGE_CHANNELS.max(ROW_BLOCK)) {
+        EDGE_CHANNELS
     } else {
         1
     };
     let least_rows = n * group.max(ROW_BLOCK);
     let (maxima, rest) = scratch.split_at_mut(group * n);
+    let (point_major, rest) = rest.split_at_mut(if group > 1 { group * n } else { 0 });
     // The group's edge values, kept for the variance pass when the scratch has room.
     let edge_count = if k > 0 && rest.len() >= group * n * k + least_rows {
         group * n * k
@@ -242,10 +243,11 @@ fn edge_conv<F: Fma>(
                 graph: &graph[..n],
                 k,
                 maxima: &mut maxima[..g * n],
+                point_major,
                 edges,
             };
-            if g == NORM_CHANNELS {
-                channel_group.finish::<F, NORM_CHANNELS>(fma);
+            if g == EDGE_CHANNELS {
+                channel_group.finish::<F, EDGE_CHANNELS>(fma);
             } else {
                 channel_group.finish::<F, 1>(fma);
             }
@@ -256,23 +258,25 @@ fn edge_conv<F: Fma>(
 }
 
 /// `G` channels of an edge convolution: centre terms `a` (`G x n`, replaced by the layer
-/// output), neighbour terms `b` (`G x n`), and scratch for `G x n` maxima and up to
-/// `n x k x G` edge values.
+/// output), neighbour terms `b` (`G x n`), and scratch for `G x n` maxima, the neighbour
+/// terms point by point (`n x G`, for `G > 1`) and up to `n x k x G` edge values.
 struct EdgeChannels<'e, 'g> {
     a: &'e mut [f32],
     b: &'e [f32],
     graph: &'g [Neighbours],
     k: usize,
     maxima: &'e mut [f32],
+    point_major: &'e mut [f32],
     edges: &'e mut [f32],
 }
 
 impl EdgeChannels<'_, '_> {
     /// Edge values `a_i + b_j`, their mean and variance over all edges of each channel,
-    /// then `LeakyReLU((a_i + max_j b_j - mean) / std)`. Each channel's sums run over its
-    /// edges in order (points, then neighbours), as one channel alone would; the `G`
-    /// channels' sums overlap in the CPU. With room for all `n k G` edge values the
-    /// variance pass reads them back instead of gathering `b_j` again (same sums).
+    /// then `LeakyReLU((a_i + max_j b_j - mean) / std)`. The `G` channels are the lanes of
+    /// one vector (the neighbour terms are first laid out point by point), and each lane's
+    /// sums run over its edges in order (points, then neighbours), as one channel alone
+    /// would. With room for all `n k G` edge values the variance pass reads them back
+    /// instead of gathering `b_j` again (same sums).
     #[inline(always)]
     fn finish<F: Fma, const G: usize>(self, fma: F) {
         let EdgeChannels {
@@ -281,33 +285,51 @@ impl EdgeChannels<'_, '_> {
             graph,
             k,
             maxima,
+            point_major,
             edges,
         } = self;
         let n = graph.len();
-        let mut moments = [Moments::default(); G];
-        let kept = edges.get_mut(..n * k * G).filter(|_| k > 0);
+        if n == 0 {
+            return;
+        }
+        let terms: &[f32] = if G == 1 {
+            b
+        } else {
+            for (j, lanes) in point_major.chunks_exact_mut(G).take(n).enumerate() {
+                for (c, lane) in lanes.iter_mut().enumerate() {
+                    *lane = b[c * n + j];
+                }
+            }
+            point_major
+        };
+        let neighbour = |j: u16| -> [f32; G] {
+            let at = usize::from(j) * G;
+            match terms.get(at..at + G) {
+                Some(lanes) => core::array::from_fn(|c| lanes[c]),
+                None => [0.0; G],
+            }
+        };
+        let centre = |i: usize| -> [f32; G] { core::array::from_fn(|c| a[c * n + i]) };
+        let mut sums = [StatSum::default(); G];
         let mut deviations = [StatSum::default(); G];
+        let kept = edges.get_mut(..n * k * G).filter(|_| k > 0);
+        let point_maxima = maxima.chunks_exact_mut(G);
         match kept {
             Some(edges) => {
-                for (i, (neighbours, point_edges)) in
-                    graph.iter().zip(edges.chunks_exact_mut(k * G)).enumerate()
-                {
-                    let ai: [f32; G] = core::array::from_fn(|c| a[c * n + i]);
-                    let mut best = [f32::NEG_INFINITY; G];
+                let points = graph.iter().zip(edges.chunks_exact_mut(k * G));
+                for (i, ((neighbours, point_edges), best)) in points.zip(point_maxima).enumerate() {
+                    let ai = centre(i);
+                    best.fill(f32::NEG_INFINITY);
                     for (&j, e) in neighbours[..k].iter().zip(point_edges.chunks_exact_mut(G)) {
-                        let j = usize::from(j);
+                        let bj = neighbour(j);
                         for c in 0..G {
-                            let bj = b[c * n + j];
-                            e[c] = ai[c] + bj;
-                            moments[c].add(e[c]);
-                            best[c] = best[c].max(bj);
+                            e[c] = ai[c] + bj[c];
+                            sums[c].add(e[c]);
+                            best[c] = if bj[c] > best[c] { bj[c] } else { best[c] };
                         }
                     }
-                    for (c, &m) in best.iter().enumerate() {
-                        maxima[c * n + i] = m;
-                    }
                 }
-                let means = moments.map(|m| m.mean());
+                let means = sums.map(|sum| Moments::of(sum, n * k).mean());
                 for e in edges.chunks_exact(G) {
                     for c in 0..G {
                         deviations[c].add(Moments::squared_deviation(e[c], means[c]));
@@ -315,38 +337,34 @@ impl EdgeChannels<'_, '_> {
                 }
             }
             None => {
-                for (i, neighbours) in graph.iter().enumerate() {
-                    let ai: [f32; G] = core::array::from_fn(|c| a[c * n + i]);
-                    let mut best = [f32::NEG_INFINITY; G];
+                for (i, (neighbours, best)) in graph.iter().zip(point_maxima).enumerate() {
+                    let ai = centre(i);
+                    best.fill(f32::NEG_INFINITY);
                     for &j in &neighbours[..k] {
-                        let j = usize::from(j);
+                        let bj = neighbour(j);
                         for c in 0..G {
-                            let bj = b[c * n + j];
-                            moments[c].add(ai[c] + bj);
-                            best[c] = best[c].max(bj);
+                            sums[c].add(ai[c] + bj[c]);
+                            best[c] = if bj[c] > best[c] { bj[c] } else { best[c] };
                         }
                     }
-                    for (c, &m) in best.iter().enumerate() {
-                        maxima[c * n + i] = m;
-                    }
                 }
-                let means = moments.map(|m| m.mean());
+                let means = sums.map(|sum| Moments::of(sum, n * k).mean());
                 for (i, neighbours) in graph.iter().enumerate() {
+                    let ai = centre(i);
                     for &j in &neighbours[..k] {
-                        let j = usize::from(j);
+                        let bj = neighbour(j);
                         for c in 0..G {
-                            let e = a[c * n + i] + b[c * n + j];
+                            let e = ai[c] + bj[c];
                             deviations[c].add(Moments::squared_deviation(e, means[c]));
                         }
                     }
                 }
             }
         }
-        let rows = a.chunks_exact_mut(n).zip(maxima.chunks_exact(n));
-        for ((row, row_maxima), (m, d)) in rows.zip(moments.iter().zip(&deviations)) {
-            let normalizer = m.normalizer(d);
-            for (ai, &best) in row.iter_mut().zip(row_maxima) {
-                *ai = leaky_relu(normalizer.apply_with(fma, *ai + best));
+        for (c, row) in a.chunks_exact_mut(n).enumerate() {
+            let normalizer = Moments::of(sums[c], n * k).normalizer(&deviations[c]);
+            for (ai, best) in row.iter_mut().zip(maxima.chunks_exact(G)) {
+                *ai = leaky_relu(normalizer.apply_with(fma, *ai + best[c]));
             }
         }
     }
@@ -838,6 +856,7 @@ mod tests {
             let (first, g) = (channels.start, channels.len());
             let mut out = a;
             let mut maxima = [0.0; 8];
+            let mut point_major = [0.0; 8];
             let mut edges = [0.0; 16];
             let group = EdgeChannels {
                 a: &mut out[4 * first..4 * (first + g)],
@@ -845,6 +864,7 @@ mod tests {
                 graph: &graph,
                 k: 2,
                 maxima: &mut maxima[..4 * g],
+                point_major: &mut point_major[..4 * g],
                 edges: if keep { &mut edges[..8 * g] } else { &mut [] },
             };
             let portable = crate::nn::dispatch::Portable;

@@ -30,6 +30,9 @@ mod sizes {
     /// Channels whose instance-norm statistics are summed together: eight independent f64
     /// sums hide the add's latency (one channel at a time waits for each add).
     pub const NORM_CHANNELS: usize = 8;
+    /// Channels of an edge convolution finished together: the lanes of one AVX2 vector
+    /// (edge values, their f64 sums in two vectors, the maxima).
+    pub const EDGE_CHANNELS: usize = 8;
 }
 
 #[cfg(target_arch = "arm")]
@@ -56,4 +59,7 @@ mod sizes {
     /// Channels whose instance-norm statistics are summed together (four f64 sums, their
     /// running maxima and centre terms stay in the FPU's registers).
     pub const NORM_CHANNELS: usize = 4;
+    /// Channels of an edge convolution finished together: four (their sums and maxima stay
+    /// in the FPU's registers, and each neighbour index is read once for all four).
+    pub const EDGE_CHANNELS: usize = 4;
 }

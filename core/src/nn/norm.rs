@@ -88,6 +88,13 @@ impl Moments {
         self.count += 1;
     }
 
+    /// The moments of `count` values whose [`StatSum`] is `sum` (the values added to it in
+    /// their order): what adding them one by one gives.
+    #[inline(always)]
+    pub fn of(sum: StatSum, count: usize) -> Self {
+        Moments { sum, count }
+    }
+
     /// Mean of the values added.
     pub fn mean(&self) -> f32 {
         if self.count == 0 {
@@ -180,17 +187,19 @@ impl Kernel<()> for InstanceNormRows<'_> {
 /// Instance norm of the `G` rows of `x` (`G x n`), their statistics summed side by side.
 #[inline(always)]
 fn normalize_rows<F: Fma, const G: usize>(fma: F, x: &mut [f32], n: usize) {
-    let mut moments = [Moments::default(); G];
+    let rows: [&[f32]; G] = core::array::from_fn(|c| &x[c * n..(c + 1) * n]);
+    let mut sums = [StatSum::default(); G];
     for i in 0..n {
-        for (c, m) in moments.iter_mut().enumerate() {
-            m.add(x[c * n + i]);
+        for (sum, row) in sums.iter_mut().zip(&rows) {
+            sum.add(row[i]);
         }
     }
+    let moments = sums.map(|sum| Moments::of(sum, n));
     let means = moments.map(|m| m.mean());
     let mut deviations = [StatSum::default(); G];
     for i in 0..n {
-        for (c, d) in deviations.iter_mut().enumerate() {
-            d.add(Moments::squared_deviation(x[c * n + i], means[c]));
+        for ((d, row), &mean) in deviations.iter_mut().zip(&rows).zip(&means) {
+            d.add(Moments::squared_deviation(row[i], mean));
         }
     }
     for ((row, m), d) in x.chunks_exact_mut(n).zip(&moments).zip(&deviations) {
