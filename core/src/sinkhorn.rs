@@ -15,24 +15,18 @@ use crate::nn::{exp, sqrt, Input, COL_BLOCK};
 pub trait PlanScalar: bytemuck::Pod {
     /// Zero, for a `const` initialised workspace.
     const ZERO: Self;
-    /// Rounds an f32 into storage.
-    fn from_f32(x: f32) -> Self;
     /// Reads storage back as f32.
     fn to_f32(self) -> f32;
     /// A stored row as f32: the row itself for f32, converted into `buf` (with the CPU's
     /// conversion instruction where `fma` has one) otherwise.
     fn row_f32<'a, F: Fma>(fma: F, row: &'a [Self], buf: &'a mut [f32]) -> &'a [f32];
-    /// Rounds `values` into `out` (as long), as [`PlanScalar::from_f32`] does, with the
-    /// CPU's conversion instruction where `fma` has one.
+    /// `values` rounded into storage (to nearest, ties to even), into `out` (as long), with
+    /// the CPU's conversion instruction where `fma` has one.
     fn store_row<F: Fma>(fma: F, values: &[f32], out: &mut [Self]);
 }
 
 impl PlanScalar for f32 {
     const ZERO: Self = 0.0;
-    #[inline(always)]
-    fn from_f32(x: f32) -> Self {
-        x
-    }
     #[inline(always)]
     fn to_f32(self) -> f32 {
         self
@@ -49,10 +43,6 @@ impl PlanScalar for f32 {
 
 impl PlanScalar for half::f16 {
     const ZERO: Self = half::f16::ZERO;
-    #[inline(always)]
-    fn from_f32(x: f32) -> Self {
-        half::f16::from_f32(x)
-    }
     #[inline(always)]
     fn to_f32(self) -> f32 {
         f16_to_f32(self.to_bits())

@@ -68,7 +68,7 @@ pub trait Fma: Copy {
     }
 
     /// `out[i]` = the f16 bits of `values[i]` rounded to nearest, ties to even (`out` as
-    /// long as `values`), the same bits for every value that is not a NaN ([`f32_to_f16`];
+    /// long as `values`), the same bits for every value that is not a NaN (`half`'s conversion;
     /// F16C's `vcvtps2ph` on x86-64).
     #[inline(always)]
     fn narrow_f16(self, values: &[f32], out: &mut [u16]) {
