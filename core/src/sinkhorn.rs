@@ -153,28 +153,20 @@ impl<S: PlanScalar> Kernel<()> for CostMatrix<'_, S> {
     /// plan's storage with the CPU's instructions (correctly rounded: the same bits).
     #[inline(always)]
     fn run<F: Fma>(self, fma: F) {
-        let CostMatrix {
-            desc3,
-            n3,
-            desc2,
-            n2,
-            channels,
-            plan,
-            norms,
-        } = self;
-        let (norm2, norm3) = norms.split_at_mut(n2);
-        squared_norms(desc2, channels, n2, norm2);
-        squared_norms(desc3, channels, n3, norm3);
+        let (norm2, norm3) = self.norms.split_at_mut(self.n2);
+        squared_norms(self.desc2, self.channels, self.n2, norm2);
+        squared_norms(self.desc3, self.channels, self.n3, norm3);
         let rows = PointRows {
-            x: desc3,
-            n: n3,
-            channels,
+            x: self.desc3,
+            n: self.n3,
+            channels: self.channels,
         };
+        let (n2, plan) = (self.n2, self.plan);
         linear_with(
             fma,
             &rows,
-            &Input::one(desc2, channels, n2),
-            0..n3,
+            &Input::one(self.desc2, self.channels, n2),
+            0..self.n3,
             |i, j0, dots| {
                 let mut distances = [0.0f32; COL_BLOCK];
                 let distances = &mut distances[..dots.len()];
