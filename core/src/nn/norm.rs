@@ -74,28 +74,20 @@ fn inverse_deviation(variance: f32) -> f32 {
 /// rounded to f32; the variance sums the f32 squares of `x - mean` in f64, rounds the sum
 /// to f32 and divides it by the count in f32; `1 / sqrt(var + eps)` is taken in f64 (sums
 /// and root in f32 with `f32-statistics`, see [`StatSum`]).
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Copy)]
 pub struct Moments {
     sum: StatSum,
     count: usize,
 }
 
 impl Moments {
-    /// Adds one value to the first pass.
-    #[inline(always)]
-    pub fn add(&mut self, x: f32) {
-        self.sum.add(x);
-        self.count += 1;
-    }
-
-    /// The moments of `count` values whose [`StatSum`] is `sum` (the values added to it in
-    /// their order): what adding them one by one gives.
+    /// The first pass over `count` values whose [`StatSum`] (added in their order) is `sum`.
     #[inline(always)]
     pub fn of(sum: StatSum, count: usize) -> Self {
         Moments { sum, count }
     }
 
-    /// Mean of the values added.
+    /// Mean of the values.
     pub fn mean(&self) -> f32 {
         if self.count == 0 {
             0.0
