@@ -317,46 +317,43 @@ impl EdgeChannels<'_, '_> {
         match kept {
             Some(edges) => {
                 let points = graph.iter().zip(edges.chunks_exact_mut(k * G));
-                for (i, ((neighbours, point_edges), best)) in points.zip(point_maxima).enumerate() {
+                for (i, ((neighbours, point_edges), maxima)) in points.zip(point_maxima).enumerate()
+                {
                     let ai = centre(i);
-                    best.fill(f32::NEG_INFINITY);
+                    let mut best = [f32::NEG_INFINITY; G];
                     for (&j, e) in neighbours[..k].iter().zip(point_edges.chunks_exact_mut(G)) {
                         let bj = neighbour(j);
-                        for c in 0..G {
-                            e[c] = ai[c] + bj[c];
-                            sums[c].add(e[c]);
-                            best[c] = if bj[c] > best[c] { bj[c] } else { best[c] };
-                        }
+                        let edge: [f32; G] = core::array::from_fn(|c| ai[c] + bj[c]);
+                        e.copy_from_slice(&edge);
+                        add_lanes(&mut sums, &edge);
+                        best = max_lanes(best, bj);
                     }
+                    maxima.copy_from_slice(&best);
                 }
                 let means = sums.map(|sum| Moments::of(sum, n * k).mean());
                 for e in edges.chunks_exact(G) {
-                    for c in 0..G {
-                        deviations[c].add(Moments::squared_deviation(e[c], means[c]));
-                    }
+                    let e: &[f32; G] = e.try_into().unwrap_or(&[0.0; G]);
+                    add_lanes(&mut deviations, &squared_deviations(e, &means));
                 }
             }
             None => {
-                for (i, (neighbours, best)) in graph.iter().zip(point_maxima).enumerate() {
+                for (i, (neighbours, maxima)) in graph.iter().zip(point_maxima).enumerate() {
                     let ai = centre(i);
-                    best.fill(f32::NEG_INFINITY);
+                    let mut best = [f32::NEG_INFINITY; G];
                     for &j in &neighbours[..k] {
                         let bj = neighbour(j);
-                        for c in 0..G {
-                            sums[c].add(ai[c] + bj[c]);
-                            best[c] = if bj[c] > best[c] { bj[c] } else { best[c] };
-                        }
+                        add_lanes(&mut sums, &core::array::from_fn(|c| ai[c] + bj[c]));
+                        best = max_lanes(best, bj);
                     }
+                    maxima.copy_from_slice(&best);
                 }
                 let means = sums.map(|sum| Moments::of(sum, n * k).mean());
                 for (i, neighbours) in graph.iter().enumerate() {
                     let ai = centre(i);
                     for &j in &neighbours[..k] {
                         let bj = neighbour(j);
-                        for c in 0..G {
-                            let e = ai[c] + bj[c];
-                            deviations[c].add(Moments::squared_deviation(e, means[c]));
-                        }
+                        let edge = core::array::from_fn(|c| ai[c] + bj[c]);
+                        add_lanes(&mut deviations, &squared_deviations(&edge, &means));
                     }
                 }
             }
@@ -368,6 +365,33 @@ impl EdgeChannels<'_, '_> {
             }
         }
     }
+}
+
+/// Adds each lane's value to its own running sum (one channel per lane).
+#[inline(always)]
+fn add_lanes<const G: usize>(sums: &mut [StatSum; G], values: &[f32; G]) {
+    for (sum, &v) in sums.iter_mut().zip(values) {
+        sum.add(v);
+    }
+}
+
+/// The larger of each lane's running maximum and its new value (`vmaxps` order: the running
+/// maximum stays where the new value is not larger, NaN included).
+#[inline(always)]
+fn max_lanes<const G: usize>(best: [f32; G], values: [f32; G]) -> [f32; G] {
+    core::array::from_fn(|c| {
+        if values[c] > best[c] {
+            values[c]
+        } else {
+            best[c]
+        }
+    })
+}
+
+/// Each lane's [`Moments::squared_deviation`] from its mean.
+#[inline(always)]
+fn squared_deviations<const G: usize>(values: &[f32; G], means: &[f32; G]) -> [f32; G] {
+    core::array::from_fn(|c| Moments::squared_deviation(values[c], means[c]))
 }
 
 /// Multi-head cross attention with message MLP (supp. eq. 6-8), in place:

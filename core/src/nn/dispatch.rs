@@ -51,6 +51,14 @@ pub trait Fma: Copy {
         integer::block_sums(w, x, p)
     }
 
+    /// [`integer::interleave_pairs`]: int8 weight rows laid out as the integer kernel's
+    /// register-block slots (SSE4.1 on x86-64; a pure permutation, so every path gives the
+    /// same slots).
+    #[inline(always)]
+    fn interleave_pairs(self, rows: [&[u8]; integer::ROWS], out: &mut [WeightPairs]) {
+        integer::interleave_pairs(rows, out);
+    }
+
     /// `out[i] = bits[i]` read as an f16 (`out` as long as `bits`), exact for every finite
     /// value ([`f16_to_f32`]; F16C's `vcvtph2ps` on x86-64).
     #[inline(always)]
@@ -199,6 +207,11 @@ impl Fma for X86Fma {
     #[inline(always)]
     fn pair_sums(self, w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
         integer::block_sums_avx2(self, w, x, p)
+    }
+
+    #[inline(always)]
+    fn interleave_pairs(self, rows: [&[u8]; integer::ROWS], out: &mut [WeightPairs]) {
+        integer::interleave_pairs_sse41(self, rows, out);
     }
 
     #[inline(always)]

@@ -18,7 +18,7 @@ use super::linear::{Input, WeightRows, MAX_INPUT};
 /// Points quantized together: one tile of the input, reused by every output row.
 pub const TILE: usize = 16;
 /// Output rows of one register block ([`blocking`]).
-const ROWS: usize = blocking::INT8_ROWS;
+pub const ROWS: usize = blocking::INT8_ROWS;
 /// Points of one register block.
 pub const POINTS: usize = blocking::INT8_POINTS;
 /// Largest quantized activation magnitude.
@@ -73,7 +73,7 @@ pub fn linear_int8<F: Fma, W: WeightRows>(
     while p0 < rows.end {
         let count = panel_len.min(rows.end - p0);
         let panel_rows = PanelRows { p0, count, pairs };
-        panel_rows.unpack(w, &layout, &mut panel.0, &mut row_scale, &mut bias);
+        panel_rows.unpack(fma, w, &layout, &mut panel.0, &mut row_scale, &mut bias);
         let mut i0 = 0;
         while i0 < n {
             let len = TILE.min(n - i0);
@@ -176,10 +176,13 @@ struct PanelRows {
 
 impl PanelRows {
     /// Unpacks the rows into `panel`, interleaved by row block (`[pair][ROWS]`; zero past
-    /// `count` and in each odd part's pad), with their scales and biases.
+    /// `count` and in each odd part's pad), with their scales and biases. A block's part
+    /// whose rows all hold its even number of channels is interleaved by
+    /// [`Fma::interleave_pairs`]; any other part lane by lane.
     #[inline(always)]
-    fn unpack<W: WeightRows>(
+    fn unpack<F: Fma, W: WeightRows>(
         &self,
+        fma: F,
         w: &W,
         layout: &PairLayout,
         panel: &mut [WeightPairs],
@@ -187,30 +190,102 @@ impl PanelRows {
         bias: &mut [f32],
     ) {
         let pairs = self.pairs;
-        for r in 0..self.count.next_multiple_of(ROWS) {
-            let lanes = &mut panel[r / ROWS * pairs..(r / ROWS + 1) * pairs];
-            let lane = r % ROWS;
-            let mut bytes = if r < self.count {
-                row_scale[r] = w.scale(self.p0 + r);
-                bias[r] = w.bias(self.p0 + r);
-                w.int8_row(self.p0 + r).unwrap_or(&[])
-            } else {
-                &[]
-            };
+        for r0 in (0..self.count).step_by(ROWS) {
+            let lanes = &mut panel[r0 / ROWS * pairs..(r0 / ROWS + 1) * pairs];
+            let mut bytes: [&[u8]; ROWS] = core::array::from_fn(|lane| {
+                let r = r0 + lane;
+                if r < self.count {
+                    row_scale[r] = w.scale(self.p0 + r);
+                    bias[r] = w.bias(self.p0 + r);
+                    w.int8_row(self.p0 + r).unwrap_or(&[])
+                } else {
+                    &[]
+                }
+            });
             for (range, &channels) in layout.ranges().zip(&layout.channels) {
-                let (part, rest) = bytes.split_at(channels.min(bytes.len()));
-                bytes = rest;
-                let mut chunks = part.chunks(2);
-                for slot in &mut lanes[range] {
-                    slot[lane] = match chunks.next() {
-                        Some(&[a, b]) => [i16::from(a as i8), i16::from(b as i8)],
-                        Some(&[a]) => [i16::from(a as i8), 0],
-                        _ => [0, 0],
-                    };
+                let parts = bytes.map(|b| b.split_at(channels.min(b.len())));
+                bytes = parts.map(|(_, rest)| rest);
+                let part = parts.map(|(part, _)| part);
+                let slots = &mut lanes[range];
+                if channels % 2 == 0 && part.iter().all(|b| b.len() == channels) {
+                    fma.interleave_pairs(part, slots);
+                } else {
+                    for (lane, row) in part.iter().enumerate() {
+                        let mut chunks = row.chunks(2);
+                        for slot in slots.iter_mut() {
+                            slot[lane] = match chunks.next() {
+                                Some(&[a, b]) => [i16::from(a as i8), i16::from(b as i8)],
+                                Some(&[a]) => [i16::from(a as i8), 0],
+                                _ => [0, 0],
+                            };
+                        }
+                    }
                 }
             }
         }
     }
+}
+
+/// `out[q][lane]` = channels `2q` and `2q + 1` of `rows[lane]` (int8, as pairs of `i16`),
+/// for every `q < out.len()`; `rows[lane]` holds `2 * out.len()` channels.
+#[inline(always)]
+pub fn interleave_pairs(rows: [&[u8]; ROWS], out: &mut [WeightPairs]) {
+    for (q, slot) in out.iter_mut().enumerate() {
+        for (pair, row) in slot.iter_mut().zip(&rows) {
+            *pair = match row.get(2 * q..2 * q + 2) {
+                Some(&[a, b]) => [i16::from(a as i8), i16::from(b as i8)],
+                _ => [0, 0],
+            };
+        }
+    }
+}
+
+/// [`interleave_pairs`] with SSE4.1 (x86-64, `ROWS` = 4): four pairs of the four rows at a
+/// time, transposed as 16-bit pairs (`punpcklwd`, `punpck*dq`) then sign-extended
+/// (`pmovsxbw`) into two blocks' slots.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+#[allow(unsafe_code)]
+pub fn interleave_pairs_sse41(
+    _avx2: super::dispatch::X86Fma,
+    rows: [&[u8]; ROWS],
+    out: &mut [WeightPairs],
+) {
+    use core::arch::x86_64::{
+        _mm_cvtepi8_epi16, _mm_loadl_epi64, _mm_srli_si128, _mm_storeu_si128, _mm_unpackhi_epi32,
+        _mm_unpacklo_epi16, _mm_unpacklo_epi32,
+    };
+    const { assert!(ROWS == 4) };
+    let quads = out.len() / 4;
+    let fits = rows.iter().all(|r| r.len() >= 8 * quads);
+    if !fits {
+        return interleave_pairs(rows, out);
+    }
+    let (body, tail) = out.split_at_mut(4 * quads);
+    for (c, slots) in body.chunks_exact_mut(4).enumerate() {
+        // SAFETY: an `X86Fma` exists only on a CPU with AVX2 (so SSE4.1). Each load reads
+        // 8 bytes of a row at `8c` (`8c + 8 <= 8 * quads <= len`, checked above); each
+        // store writes 16 bytes (one `WeightPairs` of 4 `[i16; 2]`) into `slots`, which
+        // holds 4; `loadl`/`storeu` need no alignment.
+        unsafe {
+            let load = |row: &[u8]| _mm_loadl_epi64(row.as_ptr().add(8 * c).cast());
+            let low = _mm_unpacklo_epi16(load(rows[0]), load(rows[1]));
+            let high = _mm_unpacklo_epi16(load(rows[2]), load(rows[3]));
+            let first = _mm_unpacklo_epi32(low, high);
+            let second = _mm_unpackhi_epi32(low, high);
+            let blocks = [
+                first,
+                _mm_srli_si128::<8>(first),
+                second,
+                _mm_srli_si128::<8>(second),
+            ];
+            for (slot, bytes) in slots.iter_mut().zip(blocks) {
+                _mm_storeu_si128(slot.as_mut_ptr().cast(), _mm_cvtepi8_epi16(bytes));
+            }
+        }
+    }
+    let rest = rows.map(|r| r.get(8 * quads..).unwrap_or(&[]));
+    interleave_pairs(rest, tail);
 }
 
 /// Quantizes points `i0..i0 + len` of `group`'s channels into `tile` (`[pair][point]`, zero
@@ -589,6 +664,35 @@ mod tests {
             y += sum as f32 * (max_abs / Q_MAX);
         }
         y * layer.scale(r) + layer.bias(r)
+    }
+
+    struct Interleave<'a>([&'a [u8]; ROWS], &'a mut [WeightPairs]);
+
+    impl super::super::dispatch::Kernel<()> for Interleave<'_> {
+        fn run<F: Fma>(self, fma: F) {
+            fma.interleave_pairs(self.0, self.1);
+        }
+    }
+
+    /// Rows of 0 to 21 pairs (whole groups of four pairs and tails), every byte value: the
+    /// dispatched interleave (SSE4.1 where the CPU has it) puts channels `2q`, `2q + 1` of
+    /// row `lane` at slot `q`, lane `lane`, sign-extended, and writes nothing past `out`.
+    #[test]
+    fn weight_pairs_interleave_by_definition_on_every_path() {
+        let bytes: std::vec::Vec<u8> = (0..4 * 42).map(|i| (i * 97 + 13) as u8).collect();
+        for pairs in 0..=21 {
+            let rows: [&[u8]; ROWS] =
+                core::array::from_fn(|lane| &bytes[lane * 42..lane * 42 + 2 * pairs]);
+            let mut out = std::vec![[[7i16; 2]; ROWS]; pairs + 1];
+            super::super::dispatch::with_fma(Interleave(rows, &mut out[..pairs]));
+            for (q, slot) in out[..pairs].iter().enumerate() {
+                for (lane, pair) in slot.iter().enumerate() {
+                    let channel = |c: usize| i16::from(rows[lane][c] as i8);
+                    assert_eq!(*pair, [channel(2 * q), channel(2 * q + 1)], "{pairs} {q}");
+                }
+            }
+            assert_eq!(out[pairs], [[7; 2]; ROWS], "wrote past the slots");
+        }
     }
 
     /// 9 rows (a partial row block) x 37 inputs (an odd count) on 45 points (a partial tile),
