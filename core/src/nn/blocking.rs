@@ -11,6 +11,10 @@ mod sizes {
     /// f32 linear kernel, points per register block: 4 rows x 16 points keep eight AVX2
     /// accumulators of FMA chains, enough to hide the FMA latency.
     pub const LINEAR_POINTS: usize = 16;
+    /// f32 linear kernel, output rows per register block: 6 rows x 16 points are twelve
+    /// AVX2 accumulators, two input vectors and a weight (4 rows: eight FMAs per input
+    /// channel for the same loop and load overhead as twelve).
+    pub const LINEAR_ROWS: usize = 6;
     /// Integer kernel, output rows per register block: 4 rows x 16 points fill 8 AVX2 or
     /// 16 NEON accumulators.
     pub const INT8_ROWS: usize = 4;
@@ -40,6 +44,8 @@ mod sizes {
     /// f32 linear kernel, points per register block: the 4 x 4 accumulators, four inputs
     /// and four weights stay in the FPU's 32 registers (4 x 16 spilled to the stack).
     pub const LINEAR_POINTS: usize = 4;
+    /// f32 linear kernel, output rows per register block.
+    pub const LINEAR_ROWS: usize = 4;
     /// Integer kernel, output rows per register block: 2 rows x 2 points keep the four
     /// accumulators, two weight pairs and two activation pairs in the 13 core registers.
     pub const INT8_ROWS: usize = 2;

@@ -176,18 +176,25 @@ impl<'a> Input<'a> {
     }
 }
 
-/// Decoded weights kept at once (8 KiB of stack): a panel of `PANEL_FLOATS / cols` rows.
-pub const PANEL_FLOATS: usize = 2048;
-/// Most rows of a panel.
-const PANEL_MAX_ROWS: usize = 64;
+/// Output rows of the f32 kernel's register block ([`blocking`]).
+const KERNEL_ROWS: usize = blocking::LINEAR_ROWS;
+/// Decoded weights kept at once (8 KiB of stack, or one register block of the widest
+/// layer if that is more): a panel of `PANEL_FLOATS / cols` rows.
+pub const PANEL_FLOATS: usize = if KERNEL_ROWS * MAX_INPUT > 2048 {
+    KERNEL_ROWS * MAX_INPUT
+} else {
+    2048
+};
+/// Most rows of a panel (a multiple of [`KERNEL_ROWS`]).
+const PANEL_MAX_ROWS: usize = 64 / KERNEL_ROWS * KERNEL_ROWS;
 /// Points per tile: the input tile (`cols x TILE_POINTS`) stays in cache while every row
 /// of the panel passes over it.
 const TILE_POINTS: usize = 64;
 
 /// Most output rows a panel holds for a layer of `cols` inputs (a multiple of
-/// [`ROW_BLOCK`]).
+/// [`KERNEL_ROWS`]).
 fn panel_rows(cols: usize) -> usize {
-    (PANEL_FLOATS / cols.max(1) / ROW_BLOCK * ROW_BLOCK).clamp(ROW_BLOCK, PANEL_MAX_ROWS)
+    (PANEL_FLOATS / cols.max(1) / KERNEL_ROWS * KERNEL_ROWS).clamp(KERNEL_ROWS, PANEL_MAX_ROWS)
 }
 
 /// The larger of two scratch buffers (the one [`chunk_rows`] gets more rows from).
@@ -313,7 +320,7 @@ fn linear_f32<F: Fma, W: WeightRows>(
     let small_set = input.set < SMALL_SET;
     let k = w.cols().min(MAX_INPUT);
     let panel_len = panel_rows(k);
-    let mut panel = [[0.0f32; ROW_BLOCK]; PANEL_FLOATS / ROW_BLOCK];
+    let mut panel = [[0.0f32; KERNEL_ROWS]; PANEL_FLOATS / KERNEL_ROWS];
     let mut decoded = [0.0f32; MAX_INPUT];
     let mut scale = [0.0f32; PANEL_MAX_ROWS];
     let mut bias = [0.0f32; PANEL_MAX_ROWS];
@@ -321,9 +328,9 @@ fn linear_f32<F: Fma, W: WeightRows>(
     let mut p0 = rows.start;
     while p0 < rows.end {
         let count = panel_len.min(rows.end - p0);
-        for r in 0..count.next_multiple_of(ROW_BLOCK) {
-            let lanes = &mut panel[r / ROW_BLOCK * k..(r / ROW_BLOCK + 1) * k];
-            let lane = r % ROW_BLOCK;
+        for r in 0..count.next_multiple_of(KERNEL_ROWS) {
+            let lanes = &mut panel[r / KERNEL_ROWS * k..(r / KERNEL_ROWS + 1) * k];
+            let lane = r % KERNEL_ROWS;
             if r < count {
                 w.decode(p0 + r, &mut decoded[..k]);
                 for (slot, &x) in lanes.iter_mut().zip(&decoded[..k]) {
@@ -340,14 +347,14 @@ fn linear_f32<F: Fma, W: WeightRows>(
             let t1 = (t0 + TILE_POINTS).min(n);
             let mut r = 0;
             while r < count {
-                let live = ROW_BLOCK.min(count - r);
-                let weights = &panel[r / ROW_BLOCK * k..(r / ROW_BLOCK + 1) * k];
+                let live = KERNEL_ROWS.min(count - r);
+                let weights = &panel[r / KERNEL_ROWS * k..(r / KERNEL_ROWS + 1) * k];
                 let mut i0 = t0;
                 let mut values = [0.0f32; COL_BLOCK];
                 while i0 < t1 {
                     let len = COL_BLOCK.min(t1 - i0);
                     if small_set {
-                        let rows = r..r + ROW_BLOCK;
+                        let rows = r..r + KERNEL_ROWS;
                         let acc =
                             small_block(weights, input, i0, len, &scale[rows.clone()], &bias[rows]);
                         for (b, a) in acc.iter().enumerate().take(live) {
@@ -376,17 +383,17 @@ fn linear_f32<F: Fma, W: WeightRows>(
     }
 }
 
-/// Accumulates one `ROW_BLOCK x COL_BLOCK` block over all input channels, in order;
+/// Accumulates one `KERNEL_ROWS x COL_BLOCK` block over all input channels, in order;
 /// `w[k]` holds the block's weights of input `k`. The accumulators stay in registers.
 #[inline(always)]
 fn block<F: Fma, const FULL: bool>(
     fma: F,
-    w: &[[f32; ROW_BLOCK]],
+    w: &[[f32; KERNEL_ROWS]],
     input: &Input<'_>,
     i0: usize,
     len: usize,
-) -> [[f32; COL_BLOCK]; ROW_BLOCK] {
-    let mut acc = [[0.0f32; COL_BLOCK]; ROW_BLOCK];
+) -> [[f32; COL_BLOCK]; KERNEL_ROWS] {
+    let mut acc = [[0.0f32; COL_BLOCK]; KERNEL_ROWS];
     let mut weights = w.iter();
     let first = input.start + i0;
     let stride = input.stride;
@@ -416,16 +423,16 @@ fn block<F: Fma, const FULL: bool>(
 /// One block on a set of fewer than [`SMALL_SET`] points, as the reference's BLAS sums
 /// there: each output starts from its bias and adds the products of the dequantized
 /// weights (`scale x W`), one rounding for the product and one for the sum. `scale` and
-/// `bias` hold the block's [`ROW_BLOCK`] rows.
+/// `bias` hold the block's [`KERNEL_ROWS`] rows.
 fn small_block(
-    w: &[[f32; ROW_BLOCK]],
+    w: &[[f32; KERNEL_ROWS]],
     input: &Input<'_>,
     i0: usize,
     len: usize,
     scale: &[f32],
     bias: &[f32],
-) -> [[f32; COL_BLOCK]; ROW_BLOCK] {
-    let mut acc = [[0.0f32; COL_BLOCK]; ROW_BLOCK];
+) -> [[f32; COL_BLOCK]; KERNEL_ROWS] {
+    let mut acc = [[0.0f32; COL_BLOCK]; KERNEL_ROWS];
     for (a, &b) in acc.iter_mut().zip(bias) {
         *a = [b; COL_BLOCK];
     }
