@@ -33,27 +33,61 @@ pub fn neighbour_count(knn: usize, n: usize) -> usize {
 /// squared distance `(-2 a.b + |a|^2) + |b|^2` clamped to `>= 1e-12`, the `k + 1` smallest
 /// (ties to the lower index), the first one (assumed to be the point itself) dropped.
 pub fn knn_graph(points: &[[f32; 2]], k: usize, graph: &mut [Neighbours]) {
-    let mut best = [(0.0f32, 0u16); MAX_KNN + 1];
-    for (a, neighbours) in points.iter().zip(graph.iter_mut()) {
-        let norm_a = a[0] * a[0] + a[1] * a[1];
-        let mut count = 0;
-        for (j, b) in points.iter().enumerate() {
-            let dot = a[0] * b[0] + a[1] * b[1];
-            let norm_b = b[0] * b[0] + b[1] * b[1];
-            let dist = (-2.0 * dot + norm_a + norm_b).max(1e-12);
-            if count == k + 1 && dist >= best[k].0 {
-                continue;
+    with_fma(KnnGraph { points, k, graph });
+}
+
+/// The arguments of one [`knn_graph`] call (plain f32 arithmetic: the same bits compiled for
+/// any CPU, in the widest vectors it has).
+struct KnnGraph<'a> {
+    points: &'a [[f32; 2]],
+    k: usize,
+    graph: &'a mut [Neighbours],
+}
+
+/// Candidate points whose distances are computed together (one vectorised loop), then
+/// skipped [`DISTANCE_LANES`] at a time while none is closer than the `k + 1`-th best.
+const DISTANCE_BLOCK: usize = 64;
+/// Distances compared with the current bound at once.
+const DISTANCE_LANES: usize = 8;
+
+impl Kernel<()> for KnnGraph<'_> {
+    #[inline(always)]
+    fn run<F: Fma>(self, _fma: F) {
+        let KnnGraph { points, k, graph } = self;
+        let mut best = [(0.0f32, 0u16); MAX_KNN + 1];
+        let mut distances = [0.0f32; DISTANCE_BLOCK];
+        for (a, neighbours) in points.iter().zip(graph.iter_mut()) {
+            let norm_a = a[0] * a[0] + a[1] * a[1];
+            let mut count = 0;
+            for (block, candidates) in points.chunks(DISTANCE_BLOCK).enumerate() {
+                for (d, b) in distances.iter_mut().zip(candidates) {
+                    let dot = a[0] * b[0] + a[1] * b[1];
+                    let norm_b = b[0] * b[0] + b[1] * b[1];
+                    *d = (-2.0 * dot + norm_a + norm_b).max(1e-12);
+                }
+                let first = block * DISTANCE_BLOCK;
+                let lanes = distances[..candidates.len()].chunks(DISTANCE_LANES);
+                for (lane, chunk) in lanes.enumerate() {
+                    if count == k + 1 && chunk.iter().all(|&d| d >= best[k].0) {
+                        continue;
+                    }
+                    for (t, &dist) in chunk.iter().enumerate() {
+                        if count == k + 1 && dist >= best[k].0 {
+                            continue;
+                        }
+                        let mut at = count.min(k);
+                        while at > 0 && best[at - 1].0 > dist {
+                            best[at] = best[at - 1];
+                            at -= 1;
+                        }
+                        best[at] = (dist, (first + lane * DISTANCE_LANES + t) as u16);
+                        count = (count + 1).min(k + 1);
+                    }
+                }
             }
-            let mut at = count.min(k);
-            while at > 0 && best[at - 1].0 > dist {
-                best[at] = best[at - 1];
-                at -= 1;
+            for (slot, &(_, j)) in neighbours.iter_mut().zip(&best[1..count]) {
+                *slot = j;
             }
-            best[at] = (dist, j as u16);
-            count = (count + 1).min(k + 1);
-        }
-        for (slot, &(_, j)) in neighbours.iter_mut().zip(&best[1..count]) {
-            *slot = j;
         }
     }
 }
