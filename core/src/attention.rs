@@ -54,41 +54,83 @@ impl Kernel<()> for KnnGraph<'_> {
     #[inline(always)]
     fn run<F: Fma>(self, _fma: F) {
         let KnnGraph { points, k, graph } = self;
-        let mut best = [(0.0f32, 0u16); MAX_KNN + 1];
         let mut distances = [0.0f32; DISTANCE_BLOCK];
         for (a, neighbours) in points.iter().zip(graph.iter_mut()) {
-            let norm_a = a[0] * a[0] + a[1] * a[1];
-            let mut count = 0;
+            let mut nearest = Nearest::new(k);
             for (block, candidates) in points.chunks(DISTANCE_BLOCK).enumerate() {
-                for (d, b) in distances.iter_mut().zip(candidates) {
-                    let dot = a[0] * b[0] + a[1] * b[1];
-                    let norm_b = b[0] * b[0] + b[1] * b[1];
-                    *d = (-2.0 * dot + norm_a + norm_b).max(1e-12);
-                }
-                let first = block * DISTANCE_BLOCK;
-                let lanes = distances[..candidates.len()].chunks(DISTANCE_LANES);
+                let distances = &mut distances[..candidates.len()];
+                squared_distances(a, candidates, distances);
+                let lanes = distances.chunks(DISTANCE_LANES);
                 for (lane, chunk) in lanes.enumerate() {
-                    if count == k + 1 && chunk.iter().all(|&d| d >= best[k].0) {
+                    if nearest.beats_none(chunk) {
                         continue;
                     }
+                    let first = block * DISTANCE_BLOCK + lane * DISTANCE_LANES;
                     for (t, &dist) in chunk.iter().enumerate() {
-                        if count == k + 1 && dist >= best[k].0 {
-                            continue;
-                        }
-                        let mut at = count.min(k);
-                        while at > 0 && best[at - 1].0 > dist {
-                            best[at] = best[at - 1];
-                            at -= 1;
-                        }
-                        best[at] = (dist, (first + lane * DISTANCE_LANES + t) as u16);
-                        count = (count + 1).min(k + 1);
+                        nearest.offer(dist, (first + t) as u16);
                     }
                 }
             }
-            for (slot, &(_, j)) in neighbours.iter_mut().zip(&best[1..count]) {
+            for (slot, &(_, j)) in neighbours.iter_mut().zip(nearest.without_first()) {
                 *slot = j;
             }
         }
+    }
+}
+
+/// `out[j]` = the reference's squared distance from `a` to `candidates[j]`,
+/// `max((-2 a.b + |a|^2) + |b|^2, 1e-12)`.
+#[inline(always)]
+fn squared_distances(a: &[f32; 2], candidates: &[[f32; 2]], out: &mut [f32]) {
+    let norm_a = a[0] * a[0] + a[1] * a[1];
+    for (d, b) in out.iter_mut().zip(candidates) {
+        let dot = a[0] * b[0] + a[1] * b[1];
+        let norm_b = b[0] * b[0] + b[1] * b[1];
+        *d = (-2.0 * dot + norm_a + norm_b).max(1e-12);
+    }
+}
+
+/// The `k + 1` smallest distances offered so far, in order (ties to the earlier offer).
+struct Nearest {
+    best: [(f32, u16); MAX_KNN + 1],
+    count: usize,
+    k: usize,
+}
+
+impl Nearest {
+    fn new(k: usize) -> Self {
+        Nearest {
+            best: [(0.0, 0); MAX_KNN + 1],
+            count: 0,
+            k,
+        }
+    }
+
+    /// Whether the list is full and none of `distances` would enter it.
+    #[inline(always)]
+    fn beats_none(&self, distances: &[f32]) -> bool {
+        self.count == self.k + 1 && distances.iter().all(|&d| d >= self.best[self.k].0)
+    }
+
+    /// Inserts point `j` at distance `dist` where it belongs, if it does.
+    #[inline(always)]
+    fn offer(&mut self, dist: f32, j: u16) {
+        let k = self.k;
+        if self.count == k + 1 && dist >= self.best[k].0 {
+            return;
+        }
+        let mut at = self.count.min(k);
+        while at > 0 && self.best[at - 1].0 > dist {
+            self.best[at] = self.best[at - 1];
+            at -= 1;
+        }
+        self.best[at] = (dist, j);
+        self.count = (self.count + 1).min(k + 1);
+    }
+
+    /// The list without its first entry (the point itself).
+    fn without_first(&self) -> &[(f32, u16)] {
+        self.best.get(1..self.count).unwrap_or(&[])
     }
 }
 

@@ -241,8 +241,8 @@ pub fn interleave_pairs(rows: [&[u8]; ROWS], out: &mut [WeightPairs]) {
 }
 
 /// [`interleave_pairs`] with SSE4.1 (x86-64, `ROWS` = 4): four pairs of the four rows at a
-/// time, transposed as 16-bit pairs (`punpcklwd`, `punpck*dq`) then sign-extended
-/// (`pmovsxbw`) into two blocks' slots.
+/// time, transposed as 16-bit pairs (`punpcklwd`, `punpck*dq`), then each slot's 8 bytes
+/// sign-extended (`pmovsxbw`) and stored; the tail as [`interleave_pairs`].
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 #[allow(unsafe_code)]
