@@ -591,66 +591,97 @@ impl Kernel<()> for Attend<'_> {
 /// [`attend`], compiled into the caller (for the widest vectors the CPU has).
 #[inline(always)]
 fn attend_vectorised(shape: &AttentionShape, q: &mut [f32], k: &[f32], v: &[f32]) {
-    let AttentionShape {
-        heads,
-        head_dim,
-        nx,
-        ns,
-    } = *shape;
-    let d = heads * head_dim;
-    let sqrt_dim = sqrt(head_dim as f32);
-    let mut queries = [[0.0f32; QUERY_BLOCK]; MAX_FEATURE_DIM];
-    let mut acc = [[0.0f32; MAX_FEATURE_DIM]; QUERY_BLOCK];
-    let mut scores = [[[0.0f32; SOURCE_BLOCK]; MAX_HEADS]; QUERY_BLOCK];
-    let mut i0 = 0;
-    while i0 < nx {
-        let live = QUERY_BLOCK.min(nx - i0);
-        for (c, qc) in queries[..d].iter_mut().enumerate() {
+    let mut blocks = QueryBlocks {
+        queries: [[0.0; QUERY_BLOCK]; MAX_FEATURE_DIM],
+        acc: [[0.0; MAX_FEATURE_DIM]; QUERY_BLOCK],
+        scores: [[[0.0; SOURCE_BLOCK]; MAX_HEADS]; QUERY_BLOCK],
+    };
+    for h in 0..shape.heads {
+        let mut i0 = 0;
+        while i0 < shape.nx {
+            let live = QUERY_BLOCK.min(shape.nx - i0);
+            blocks.attend_head(shape, h, q, i0, live, k, v);
+            i0 += live;
+        }
+    }
+}
+
+/// Buffers of one block of [`QUERY_BLOCK`] queries: the queries, their running messages
+/// and one source block's scores (only head `h`'s parts are used by a call for `h`).
+struct QueryBlocks {
+    queries: [[f32; QUERY_BLOCK]; MAX_FEATURE_DIM],
+    acc: [[f32; MAX_FEATURE_DIM]; QUERY_BLOCK],
+    scores: [[[f32; SOURCE_BLOCK]; MAX_HEADS]; QUERY_BLOCK],
+}
+
+impl QueryBlocks {
+    /// Head `h`'s messages for the `live` queries from `i0`, which replace the head's query
+    /// channels in `q` (no other head reads them): scores, online softmax and messages,
+    /// source block after source block.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn attend_head(
+        &mut self,
+        shape: &AttentionShape,
+        h: usize,
+        q: &mut [f32],
+        i0: usize,
+        live: usize,
+        k: &[f32],
+        v: &[f32],
+    ) {
+        let (heads, head_dim, nx) = (shape.heads, shape.head_dim, shape.nx);
+        let dims = h * head_dim..(h + 1) * head_dim;
+        for e in 0..head_dim {
+            let c = h + heads * e;
+            let qc = &mut self.queries[c];
             *qc = [0.0; QUERY_BLOCK];
             qc[..live].copy_from_slice(&q[c * nx + i0..c * nx + i0 + live]);
         }
-        for a in acc.iter_mut() {
-            a[..d].fill(0.0);
+        for a in self.acc.iter_mut() {
+            a[dims.clone()].fill(0.0);
         }
-        let mut max = [[f32::NEG_INFINITY; MAX_HEADS]; QUERY_BLOCK];
-        let mut total = [[0.0f32; MAX_HEADS]; QUERY_BLOCK];
+        let sqrt_dim = sqrt(head_dim as f32);
+        let mut max = [f32::NEG_INFINITY; QUERY_BLOCK];
+        let mut total = [0.0f32; QUERY_BLOCK];
         let mut j0 = 0;
-        while j0 < ns {
-            let len = SOURCE_BLOCK.min(ns - j0);
-            for h in 0..heads {
-                score_tiles(shape, h, &queries, k, j0, len, sqrt_dim, &mut scores);
-            }
+        while j0 < shape.ns {
+            let len = SOURCE_BLOCK.min(shape.ns - j0);
+            score_tiles(
+                shape,
+                h,
+                &self.queries,
+                k,
+                j0,
+                len,
+                sqrt_dim,
+                &mut self.scores,
+            );
             for b in 0..QUERY_BLOCK {
-                for h in 0..heads {
-                    let s = &mut scores[b][h][..len];
-                    let block_max = lane_max(s);
-                    if block_max > max[b][h] {
-                        let correction = softmax_weight(max[b][h] - block_max);
-                        total[b][h] *= correction;
-                        for a in &mut acc[b][h * head_dim..(h + 1) * head_dim] {
-                            *a *= correction;
-                        }
-                        max[b][h] = block_max;
+                let s = &mut self.scores[b][h][..len];
+                let block_max = lane_max(s);
+                if block_max > max[b] {
+                    let correction = softmax_weight(max[b] - block_max);
+                    total[b] *= correction;
+                    for a in &mut self.acc[b][dims.clone()] {
+                        *a *= correction;
                     }
-                    let m = max[b][h];
-                    for x in s.iter_mut() {
-                        *x = softmax_weight(*x - m);
-                    }
-                    total[b][h] += lane_sum(s);
+                    max[b] = block_max;
                 }
+                for x in s.iter_mut() {
+                    *x = softmax_weight(*x - max[b]);
+                }
+                total[b] += lane_sum(s);
             }
-            for h in 0..heads {
-                message_tiles(shape, h, &scores, v, j0, len, &mut acc);
-            }
+            message_tiles(shape, h, &self.scores, v, j0, len, &mut self.acc);
             j0 += len;
         }
-        for c in 0..d {
-            let (h, e) = (c % heads, c / heads);
+        for e in 0..head_dim {
+            let c = h + heads * e;
             for b in 0..live {
-                q[c * nx + i0 + b] = acc[b][h * head_dim + e] / total[b][h];
+                q[c * nx + i0 + b] = self.acc[b][h * head_dim + e] / total[b];
             }
         }
-        i0 += live;
     }
 }
 
