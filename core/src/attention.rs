@@ -399,7 +399,7 @@ impl EdgeChannels<'_, '_> {
                     let mut best = [f32::NEG_INFINITY; G];
                     for (&j, e) in neighbours[..k].iter().zip(point_edges.chunks_exact_mut(G)) {
                         let bj = neighbour(j);
-                        let edge: [f32; G] = core::array::from_fn(|c| ai[c] + bj[c]);
+                        let edge = edge_values(&ai, &bj);
                         e.copy_from_slice(&edge);
                         add_lanes(&mut sums, &edge);
                         best = max_lanes(best, bj);
@@ -418,7 +418,7 @@ impl EdgeChannels<'_, '_> {
                     let mut best = [f32::NEG_INFINITY; G];
                     for &j in &neighbours[..k] {
                         let bj = neighbour(j);
-                        add_lanes(&mut sums, &core::array::from_fn(|c| ai[c] + bj[c]));
+                        add_lanes(&mut sums, &edge_values(&ai, &bj));
                         best = max_lanes(best, bj);
                     }
                     maxima.copy_from_slice(&best);
@@ -428,7 +428,7 @@ impl EdgeChannels<'_, '_> {
                     let ai = centre(i);
                     for &j in &neighbours[..k] {
                         let bj = neighbour(j);
-                        let edge = core::array::from_fn(|c| ai[c] + bj[c]);
+                        let edge = edge_values(&ai, &bj);
                         add_lanes(&mut deviations, &squared_deviations(&edge, &means));
                     }
                 }
@@ -441,6 +441,12 @@ impl EdgeChannels<'_, '_> {
             }
         }
     }
+}
+
+/// The edge values `a_i + b_j` of a group's channels (one per lane).
+#[inline(always)]
+fn edge_values<const G: usize>(ai: &[f32; G], bj: &[f32; G]) -> [f32; G] {
+    core::array::from_fn(|c| ai[c] + bj[c])
 }
 
 /// Adds each lane's value to its own running sum (one channel per lane).
@@ -679,7 +685,7 @@ impl QueryBlocks {
         for e in 0..head_dim {
             let c = h + heads * e;
             for b in 0..live {
-                q[c * nx + i0 + b] = self.acc[b][h * head_dim + e] / total[b];
+                q[c * nx + i0 + b] = self.acc[b][dims.start + e] / total[b];
             }
         }
     }

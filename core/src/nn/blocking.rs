@@ -8,8 +8,8 @@ pub use sizes::*;
 
 #[cfg(not(target_arch = "arm"))]
 mod sizes {
-    /// f32 linear kernel, points per register block: 4 rows x 16 points keep eight AVX2
-    /// accumulators of FMA chains, enough to hide the FMA latency.
+    /// f32 linear kernel, points per register block: two AVX2 vectors per row of the
+    /// register block ([`LINEAR_ROWS`] x 16 accumulators of FMA chains hide the FMA latency).
     pub const LINEAR_POINTS: usize = 16;
     /// f32 linear kernel, output rows per register block: 6 rows x 16 points are twelve
     /// AVX2 accumulators, two input vectors and a weight (4 rows: eight FMAs per input

@@ -214,8 +214,8 @@ impl PanelRows {
                         let mut chunks = row.chunks(2);
                         for slot in slots.iter_mut() {
                             slot[lane] = match chunks.next() {
-                                Some(&[a, b]) => [i16::from(a as i8), i16::from(b as i8)],
-                                Some(&[a]) => [i16::from(a as i8), 0],
+                                Some(&[a, b]) => pair(a, b),
+                                Some(&[a]) => pair(a, 0),
                                 _ => [0, 0],
                             };
                         }
@@ -231,13 +231,19 @@ impl PanelRows {
 #[inline(always)]
 pub fn interleave_pairs(rows: [&[u8]; ROWS], out: &mut [WeightPairs]) {
     for (q, slot) in out.iter_mut().enumerate() {
-        for (pair, row) in slot.iter_mut().zip(&rows) {
-            *pair = match row.get(2 * q..2 * q + 2) {
-                Some(&[a, b]) => [i16::from(a as i8), i16::from(b as i8)],
+        for (slot_pair, row) in slot.iter_mut().zip(&rows) {
+            *slot_pair = match row.get(2 * q..2 * q + 2) {
+                Some(&[a, b]) => pair(a, b),
                 _ => [0, 0],
             };
         }
     }
+}
+
+/// Two int8 weights (stored as bytes) as a channel pair.
+#[inline(always)]
+fn pair(a: u8, b: u8) -> Pair {
+    [i16::from(a as i8), i16::from(b as i8)]
 }
 
 /// [`interleave_pairs`] with SSE4.1 (x86-64, `ROWS` = 4): four pairs of the four rows at a
