@@ -18,9 +18,11 @@
 //! `round(w / s)` with one symmetric f32 scale `s = max|w_row| / 127` per output row.
 //! Biases are always f32.
 //!
-//! Residual blocks keep the reference's three convolutions with their biases: folding
-//! them (`IN(W1 (W0 x + b0) + b1) = IN((W1 W0) x)`) would save a third of the encoder's
-//! work but moves f32 results ~3e-4 away from the reference's (README.md, "Conformance").
+//! Residual blocks keep the reference's three convolutions with their biases, or store
+//! `preconv` folded into `conv1` (`W1 (W0 x + b0) + b1 = (W1 W0) x + (W1 b0 + b1)`, exact in
+//! real arithmetic; [`Downstream::Folds`]): a third less of the encoder's and classifier's
+//! work, but f32 results move ~3e-4 away from the reference's, so the converter folds only
+//! when asked (`--fold-blocks`; docs/design.md, "The network").
 //! The converter folds one exact identity into the stored tensors: EdgeConv
 //! `W [f_i, f_j - f_i] = (Wa - Wb) f_i + Wb f_j`, so each self layer stores the centre part
 //! `Wa - Wb` and the neighbour part `Wb` (a `k`-fold saving; its rounding stays ~1e-5).
@@ -223,6 +225,8 @@ pub struct TensorSpec {
     pub cols: usize,
     /// Whether it carries a bias.
     pub bias: bool,
+    /// Whether it may be stored empty, folded into the next tensor ([`Downstream::Folds`]).
+    pub foldable: bool,
 }
 
 const fn spec(
@@ -231,6 +235,7 @@ const fn spec(
     rows: usize,
     cols: usize,
     bias: bool,
+    foldable: bool,
 ) -> TensorSpec {
     TensorSpec {
         name: TensorName {
@@ -240,6 +245,7 @@ const fn spec(
         rows,
         cols,
         bias,
+        foldable,
     }
 }
 
@@ -280,6 +286,11 @@ pub enum Downstream {
     EdgeCentre,
     /// The neighbour half of an EdgeConv (the tensor before it is the centre half).
     EdgeNeighbour,
+    /// The next tensor, with no activation between, then an instance norm: a residual
+    /// block's `preconv`. A blob may store it folded into the next tensor
+    /// (`W1 (W0 x + b0) + b1 = (W1 W0) x + (W1 b0 + b1)`), as an empty 0 x 0 tensor
+    /// without bias ([`ResidualBlockWeights::folded`]).
+    Folds,
 }
 
 /// One tensor of a layer: its role (name in errors and reports), output and input
@@ -443,6 +454,7 @@ pub fn tensor_spec(config: &ModelConfig, index: usize) -> Option<TensorSpec> {
         t.rows.channels(config),
         t.cols.channels(config),
         t.bias,
+        matches!(t.downstream, Downstream::Folds),
     ))
 }
 
@@ -547,10 +559,11 @@ fn read_f32(bytes: &[u8], index: usize) -> Option<f32> {
 pub const RESIDUAL_BLOCK_TENSORS: usize = 3;
 
 /// One residual block of a point ResNet (supp. Fig. "Residual Block"), as the reference
-/// stores it: `preconv`, `conv1`, `conv2`, each with its bias.
+/// stores it: `preconv`, `conv1`, `conv2`, each with its bias; or folded, with an empty
+/// `preconv` and `conv1` holding `W1 W0` and `W1 b0 + b1` ([`Downstream::Folds`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ResidualBlockWeights<'a> {
-    /// `preconv` (no norm, no activation).
+    /// `preconv` (no norm, no activation); 0 x 0 where folded into `conv1`.
     pub preconv: Linear<'a>,
     /// `conv1` (instance norm follows).
     pub conv1: Linear<'a>,
@@ -572,7 +585,7 @@ impl<'a> ResidualBlockWeights<'a> {
             Width::Features(1),
             Width::Features(1),
             true,
-            Downstream::Norm,
+            Downstream::Folds,
         ),
         tensor(
             "encoder.block.conv1",
@@ -596,7 +609,7 @@ impl<'a> ResidualBlockWeights<'a> {
             Width::Classifier(1),
             Width::Classifier(1),
             true,
-            Downstream::Norm,
+            Downstream::Folds,
         ),
         tensor(
             "classifier.block.conv1",
@@ -613,6 +626,11 @@ impl<'a> ResidualBlockWeights<'a> {
             Downstream::Norm,
         ),
     ];
+
+    /// Whether `preconv` is folded into `conv1` (stored empty).
+    pub fn folded(&self) -> bool {
+        self.preconv.rows() == 0
+    }
 
     /// The convolution at position `part` of the block's tensors.
     fn slot(&mut self, part: usize) -> &mut Linear<'a> {
@@ -981,7 +999,8 @@ fn check_record<'a>(
 ) -> Result<Linear<'a>> {
     let precision = record.precision;
     let (rows, cols) = (record.rows as usize, record.cols as usize);
-    if rows != spec.rows || cols != spec.cols {
+    let folded = spec.foldable && rows == 0 && cols == 0;
+    if (rows != spec.rows || cols != spec.cols) && !folded {
         return Err(Error::TensorShape {
             tensor: spec.name,
             expected: [spec.rows, spec.cols],
@@ -1014,7 +1033,7 @@ fn check_record<'a>(
         (
             TensorPart::Bias,
             record.bias.len(),
-            if spec.bias { row_values } else { 0 },
+            if spec.bias && !folded { row_values } else { 0 },
         ),
     ];
     for (part, found, expected) in lengths {
@@ -1163,7 +1182,8 @@ mod tests {
         ));
     }
 
-    /// EdgeConv halves come in (centre, neighbour) pairs of one section, of one shape.
+    /// EdgeConv halves come in (centre, neighbour) pairs of one section, of one shape; a
+    /// foldable tensor is followed by a layer on its output and an instance norm.
     #[test]
     fn edge_halves_are_declared_in_pairs() {
         for section in Section::ORDER {
@@ -1179,6 +1199,11 @@ mod tests {
                     }
                     Downstream::EdgeNeighbour => {
                         assert_eq!(before, Some(Downstream::EdgeCentre), "{}", t.role)
+                    }
+                    Downstream::Folds => {
+                        let n = next.expect("a folding tensor has a next tensor");
+                        assert_eq!(n.downstream, Downstream::Norm, "{}", t.role);
+                        assert_eq!(n.cols, t.rows, "{}", t.role);
                     }
                     Downstream::Direct | Downstream::Norm => {}
                 }

@@ -1,4 +1,4 @@
-//! One unit of work for instruction counting (`tools/callgrind.sh`): `match N PRECISION`
+//! One unit of work for instruction counting (`tools/callgrind.sh`): `match N WEIGHTS`
 //! runs the matcher once on a query-view pair of N points (reference fixture weights,
 //! f16 Sinkhorn cost for int8 and f16, f32 otherwise); `localize` runs one full k = 10
 //! localization of a `colmap/mouse` query at N = 1024 with the shipped int8 model and an
@@ -6,9 +6,11 @@
 //! precomputed view features. Preparation (conversion, map and features build) is outside
 //! the functions callgrind is told to count.
 //!
-//! `time N PRECISION RUNS` times the same match (`tools/bench_reference.sh` runs it beside
+//! `time N WEIGHTS RUNS` times the same match (`tools/bench_reference.sh` runs it beside
 //! the reference): two warm-up runs, then RUNS timed ones on this thread, and prints
-//! `RESULT {"n", "precision", "runs", "median_ms", "min_ms", "max_ms", "matches"}`.
+//! `RESULT {"n", "precision", "folded", "runs", "median_ms", "min_ms", "max_ms", "matches"}`.
+//! WEIGHTS is a precision or `int8-folded` (int8 with residual blocks folded,
+//! `gomatch-tools convert --fold-blocks`).
 
 use std::sync::Mutex;
 use std::time::Instant;
@@ -33,33 +35,44 @@ const WARMUP: usize = 2;
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     match args.iter().map(String::as_str).collect::<Vec<_>>()[..] {
-        ["match", n, precision] => match_once(n.parse()?, parse_precision(precision)?),
-        ["time", n, precision, runs] => {
-            time_matches(n.parse()?, parse_precision(precision)?, runs.parse()?)
-        }
+        ["match", n, weights] => match_once(n.parse()?, parse_weights(weights)?),
+        ["time", n, weights, runs] => time_matches(n.parse()?, parse_weights(weights)?, runs.parse()?),
         ["localize"] => localize_once(false),
         ["localize", "features"] => localize_once(true),
         _ => anyhow::bail!(
-            "usage: workload match N f32|f16|int8 | workload time N f32|f16|int8 RUNS | workload localize [features]"
+            "usage: workload match N WEIGHTS | workload time N WEIGHTS RUNS | workload localize [features] (WEIGHTS: f32, f16, int8 or int8-folded)"
         ),
     }
 }
 
-fn parse_precision(name: &str) -> anyhow::Result<Precision> {
-    Ok(match name {
+/// How the fixture weights are converted: a precision, residual blocks folded or not
+/// (`gomatch-tools convert --fold-blocks`).
+#[derive(Clone, Copy)]
+struct Weights {
+    precision: Precision,
+    folded: bool,
+}
+
+fn parse_weights(name: &str) -> anyhow::Result<Weights> {
+    let precision = match name {
         "f32" => Precision::F32,
         "f16" => Precision::F16,
-        "int8" => Precision::Int8,
-        other => anyhow::bail!("unknown precision {other}"),
+        "int8" | "int8-folded" => Precision::Int8,
+        other => anyhow::bail!("unknown weights {other}"),
+    };
+    Ok(Weights {
+        precision,
+        folded: name.ends_with("-folded"),
     })
 }
 
-/// The reference fixture weights converted to `precision` (nearest rounding).
-fn fixture_blob(precision: Precision) -> anyhow::Result<Vec<u8>> {
+/// The reference fixture weights converted as `weights` asks (nearest rounding).
+fn fixture_blob(weights: Weights) -> anyhow::Result<Vec<u8>> {
     let checkpoint = std::fs::read(workload::shared("reference/fixtures/weights.safetensors"))?;
     let options = Options {
         rounding: Rounding::Nearest,
-        ..Options::new(precision)
+        fold_blocks: weights.folded,
+        ..Options::new(weights.precision)
     };
     Ok(convert_with(&checkpoint, &options)?.0)
 }
@@ -82,8 +95,9 @@ fn run_match(
     })
 }
 
-fn match_once(n: usize, precision: Precision) -> anyhow::Result<()> {
-    let blob = fixture_blob(precision)?;
+fn match_once(n: usize, weights: Weights) -> anyhow::Result<()> {
+    let precision = weights.precision;
+    let blob = fixture_blob(weights)?;
     let model = Model::from_bytes(&blob)?;
     let (query, db) = workload::pair(n);
     let matches = run_match(&model, precision, &query, &db)?;
@@ -91,9 +105,10 @@ fn match_once(n: usize, precision: Precision) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn time_matches(n: usize, precision: Precision, runs: usize) -> anyhow::Result<()> {
+fn time_matches(n: usize, weights: Weights, runs: usize) -> anyhow::Result<()> {
     anyhow::ensure!(runs > 0, "RUNS must be at least 1");
-    let blob = fixture_blob(precision)?;
+    let precision = weights.precision;
+    let blob = fixture_blob(weights)?;
     let model = Model::from_bytes(&blob)?;
     let (query, db) = workload::pair(n);
     let mut matches = 0;
@@ -110,6 +125,7 @@ fn time_matches(n: usize, precision: Precision, runs: usize) -> anyhow::Result<(
     let result = serde_json::json!({
         "n": n,
         "precision": format!("{precision:?}").to_lowercase(),
+        "folded": weights.folded,
         "runs": runs,
         "median_ms": ms[runs / 2],
         "min_ms": ms[0],

@@ -476,7 +476,7 @@ pub fn fit_int8(
         reading_order(&mut matcher, &float, &runs)?
     };
     let mut descriptors: Option<Vec<PairDescriptors>> = None;
-    for group in groups(config, &order)? {
+    for group in groups(config, tensors, &order)? {
         if !group.iter().any(|&i| precisions[i] == Precision::Int8) {
             fitter.keep_float(&group);
             continue;
@@ -743,14 +743,25 @@ fn reading_order(
 
 /// The fit groups in reading order: each tensor alone, an EdgeConv pair (reported by its
 /// centre tensor) together. Every tensor of the layout must be read.
-fn groups(config: &ModelConfig, order: &[usize]) -> anyhow::Result<Vec<Vec<usize>>> {
+fn groups(
+    config: &ModelConfig,
+    tensors: &[FloatLinear],
+    order: &[usize],
+) -> anyhow::Result<Vec<Vec<usize>>> {
     let mut groups = Vec::with_capacity(order.len());
-    let mut covered = vec![false; tensor_count(config)];
+    // A folded (empty) tensor is never read.
+    let mut covered: Vec<bool> = tensors.iter().map(|t| t.rows == 0).collect();
+    anyhow::ensure!(
+        covered.len() == tensor_count(config),
+        "{} tensors for a configuration of {}",
+        covered.len(),
+        tensor_count(config)
+    );
     for &index in order {
         let group = match downstream(config, index)? {
             Downstream::EdgeCentre => vec![index, index + 1],
             Downstream::EdgeNeighbour => anyhow::bail!("tensor {index} read as an EdgeConv centre"),
-            Downstream::Direct | Downstream::Norm => vec![index],
+            Downstream::Direct | Downstream::Norm | Downstream::Folds => vec![index],
         };
         for &member in &group {
             *covered
@@ -895,7 +906,10 @@ impl Moments {
         f: Vec<Captured>,
         q: Option<Vec<Captured>>,
     ) -> anyhow::Result<()> {
-        let centred = downstream(config, lead)? == Downstream::Norm;
+        let centred = matches!(
+            downstream(config, lead)?,
+            Downstream::Norm | Downstream::Folds
+        );
         let q: Vec<Option<Captured>> = match q {
             Some(q) => {
                 anyhow::ensure!(q.len() == f.len(), "the two paths read different inputs");
@@ -1123,15 +1137,15 @@ mod tests {
     }
 
     /// The shipped checkpoint's float model and one calibration pair with its matches.
-    fn float_model() -> Option<(ModelConfig, Vec<u8>)> {
+    fn float_model() -> Option<(ModelConfig, Vec<u8>, Vec<FloatLinear>)> {
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/gomatch.safetensors");
         let Ok(checkpoint) = std::fs::read(path) else {
             println!("SKIPPED: no shipped checkpoint {path}");
             return None;
         };
         let (blob, _) = crate::convert::convert(&checkpoint, Precision::F32).expect("f32 blob");
-        let model = Model::from_bytes(&blob).expect("blob");
-        Some((*model.config(), blob))
+        let (config, tensors) = crate::convert::float_tensors(&checkpoint).expect("tensors");
+        Some((config, blob, tensors))
     }
 
     /// What the tap keeps is what the core's layers read: the encoder's input is the
@@ -1140,7 +1154,7 @@ mod tests {
     /// model's matches. Every tensor is read, in an order that follows the network.
     #[test]
     fn the_tap_keeps_what_the_core_reads() {
-        let Some((config, blob)) = float_model() else {
+        let Some((config, blob, tensors)) = float_model() else {
             return;
         };
         let model = Model::from_bytes(&blob).expect("blob");
@@ -1213,7 +1227,7 @@ mod tests {
         }
 
         let order = reading_order(&mut matcher, &model, std::slice::from_ref(&run)).expect("order");
-        let groups = groups(&config, &order).expect("every tensor read");
+        let groups = groups(&config, &tensors, &order).expect("every tensor read");
         assert_eq!(groups[0], vec![index(Section::EncoderInput, 0, 0)]);
         let at = |tensor| order.iter().position(|&t| t == tensor).expect("read");
         let second_self = index(
