@@ -771,6 +771,15 @@ mod tests {
         }
     }
 
+    /// A seeded linear congruential sequence of numbers in `[0, 1)`.
+    fn uniform(seed: u32) -> impl FnMut() -> f32 {
+        let mut state = seed;
+        move || {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            (state >> 8) as f32 / (1u32 << 24) as f32
+        }
+    }
+
     /// Iterations and potentials (`u` then `v`) of [`sinkhorn`] on `cost`.
     fn potentials<S: PlanScalar>(
         cost: &[S],
@@ -809,13 +818,8 @@ mod tests {
     fn columns_from_rows_reach_the_reference_potentials() {
         extern crate std;
         let (n3, n2) = (37, 29);
-        let mut state = 7u32;
-        let cost: std::vec::Vec<f32> = (0..n3 * n2)
-            .map(|_| {
-                state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
-                2.0 * (state >> 8) as f32 / (1u32 << 24) as f32
-            })
-            .collect();
+        let mut next = uniform(7);
+        let cost: std::vec::Vec<f32> = (0..n3 * n2).map(|_| 2.0 * next()).collect();
         let params = SinkhornParams {
             max_iters: 50,
             stop: 1e-7,
@@ -835,11 +839,7 @@ mod tests {
     fn columns_from_rows_reach_the_reference_potentials_on_any_costs() {
         extern crate std;
         let (n3, n2) = (5, 4);
-        let mut state = 99u32;
-        let mut next = move || {
-            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
-            (state >> 8) as f32 / (1u32 << 24) as f32
-        };
+        let mut next = uniform(99);
         for case in 0..3000 {
             let scale = [1.0f32, 10.0, 100.0, 1000.0][case % 4];
             let offset = [0.0f32, -0.5, 0.5][case % 3];
@@ -918,11 +918,7 @@ mod tests {
     fn plan_argmaxima_equal_a_scan_of_every_entry() {
         extern crate std;
         let (n3, n2) = (7, 9);
-        let mut state = 12_345u32;
-        let mut next = move || {
-            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
-            (state >> 8) as f32 / (1u32 << 24) as f32
-        };
+        let mut next = uniform(12_345);
         for case in 0..200 {
             let mut cost: std::vec::Vec<f32> = (0..n3 * n2).map(|_| 0.5 + next()).collect();
             // Ties: near-zero costs a few f32 steps apart, the smallest one later in its
