@@ -379,13 +379,16 @@ fn sinkhorn_vectorised<F: Fma, S: PlanScalar>(fma: F, args: Sinkhorn<'_, S>) -> 
         mu: log_mu.map(libm::expf),
     };
     let (log_nu, log_nu_bin) = (log_marginal(n2, n3, false), log_marginal(n2, n3, true));
+    if S::COLUMNS_FROM_ROWS {
+        // The row pass's column sums need no maximum taken out.
+        col_max.fill(0.0);
+    }
     let mut iterations = 0;
     while iterations < params.max_iters {
         iterations += 1;
         u_prev.copy_from_slice(u);
         if S::COLUMNS_FROM_ROWS {
             passes.rows_with_column_sums(u, v, buf, row, col_sum);
-            col_max.fill(0.0);
         } else {
             passes.rows_with_column_maxima(u, v, buf, row, col_max, col_sum);
             passes.column_sums(u, v, buf, col_max, col_sum);
@@ -438,20 +441,33 @@ impl<F: Fma, S: PlanScalar> Passes<'_, F, S> {
         cost_row(self.fma, self.cost, self.n3, self.n2, i, buf, self.bins)
     }
 
-    /// `log(mu_i + 1e-8)`.
+    /// Index of row `i`'s marginal in `log_mu` and `mu`: 0 for a real row, 1 for the dustbin.
     #[inline(always)]
-    fn log_mu(&self, i: usize) -> f32 {
-        self.log_mu[usize::from(i == self.n3)]
+    fn marginal(&self, i: usize) -> usize {
+        usize::from(i == self.n3)
     }
 
-    /// Row `i`'s log plan under `ui` and `v` into `row` (`n2 + 1` values, dustbin last).
+    /// The reference's row update `u_i = eps (log mu_i - LSE_j M_ij) + u_i` under `v`,
+    /// leaving row `i`'s terms `exp(M_ij - max_i)` under the old `u_i` in `row` (`n2 + 1`
+    /// values, dustbin last); returns their sum.
     #[inline(always)]
-    fn log_plan_row(&self, i: usize, ui: f32, v: &[f32], buf: &mut [f32], row: &mut [f32]) {
+    fn update_row(
+        &self,
+        i: usize,
+        ui: &mut f32,
+        v: &[f32],
+        buf: &mut [f32],
+        row: &mut [f32],
+    ) -> f32 {
+        let old = *ui;
         let costs = self.costs(i, buf);
         for ((r, &c), &vj) in row.iter_mut().zip(costs).zip(v) {
-            *r = self.log_plan(c, ui, vj);
+            *r = self.log_plan(c, old, vj);
         }
-        row[self.n2] = self.log_plan(self.bin, ui, v[self.n2]);
+        row[self.n2] = self.log_plan(self.bin, old, v[self.n2]);
+        let (max, sum) = exp_terms_in_place(row);
+        *ui = self.eps * (self.log_mu[self.marginal(i)] - (libm::logf(sum) + max)) + old;
+        sum
     }
 
     /// Row pass of the reference, `u_i = eps (log mu_i - LSE_j M_ij) + u_i`, that also
@@ -472,11 +488,8 @@ impl<F: Fma, S: PlanScalar> Passes<'_, F, S> {
         let (mut maxima, mut next) = (&mut *col_max, &mut *col_sum);
         maxima.fill(f32::NEG_INFINITY);
         for (i, ui) in u.iter_mut().enumerate() {
-            let old = *ui;
-            self.log_plan_row(i, old, v, buf, row);
-            let (max, sum) = exp_terms_in_place(row);
-            let new = self.eps * (self.log_mu(i) - (libm::logf(sum) + max)) + old;
-            *ui = new;
+            self.update_row(i, ui, v, buf, row);
+            let new = *ui;
             let costs = self.costs(i, buf);
             let columns = next.iter_mut().zip(maxima.iter()).zip(costs).zip(v.iter());
             for (((m, &before), &c), &vj) in columns {
@@ -505,11 +518,8 @@ impl<F: Fma, S: PlanScalar> Passes<'_, F, S> {
     ) {
         col_sum.fill(0.0);
         for (i, ui) in u.iter_mut().enumerate() {
-            let old = *ui;
-            self.log_plan_row(i, old, v, buf, row);
-            let (max, sum) = exp_terms_in_place(row);
-            *ui = self.eps * (self.log_mu(i) - (libm::logf(sum) + max)) + old;
-            let weight = self.mu[usize::from(i == self.n3)] / sum;
+            let sum = self.update_row(i, ui, v, buf, row);
+            let weight = self.mu[self.marginal(i)] / sum;
             for (s, &e) in col_sum.iter_mut().zip(row.iter()) {
                 *s += e * weight;
             }

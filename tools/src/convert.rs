@@ -276,7 +276,8 @@ pub fn fold_residual_blocks(config: &ModelConfig, tensors: &mut [FloatLinear]) -
     Ok(())
 }
 
-/// `second` after `first` as one layer: `W2 W1`, `W2 b1 + b2` (sums in f64).
+/// `second` after `first` as one layer: `W2 W1`, `W2 b1 + b2` (sums in f64; a missing
+/// bias counts as zero).
 fn fold(first: &FloatLinear, second: &FloatLinear) -> Result<FloatLinear> {
     ensure!(
         second.cols == first.rows && first.rows > 0,
@@ -288,8 +289,8 @@ fn fold(first: &FloatLinear, second: &FloatLinear) -> Result<FloatLinear> {
     );
     let (rows, inner, cols) = (second.rows, first.rows, first.cols);
     let mut weights = vec![0.0f32; rows * cols];
-    let mut bias = vec![0.0f32; if second.bias.is_empty() { 0 } else { rows }];
-    for r in 0..rows {
+    let mut bias = vec![0.0f32; rows];
+    for (r, b) in bias.iter_mut().enumerate() {
         let w2 = &second.weights[r * inner..(r + 1) * inner];
         for (c, out) in weights[r * cols..(r + 1) * cols].iter_mut().enumerate() {
             let sum: f64 = w2
@@ -299,14 +300,13 @@ fn fold(first: &FloatLinear, second: &FloatLinear) -> Result<FloatLinear> {
                 .sum();
             *out = sum as f32;
         }
-        if let Some(b) = bias.get_mut(r) {
-            let through: f64 = w2
-                .iter()
-                .zip(&first.bias)
-                .map(|(&a, &b1)| f64::from(a) * f64::from(b1))
-                .sum();
-            *b = (through + f64::from(second.bias[r])) as f32;
-        }
+        let through: f64 = w2
+            .iter()
+            .zip(&first.bias)
+            .map(|(&a, &b1)| f64::from(a) * f64::from(b1))
+            .sum();
+        let own = second.bias.get(r).copied().unwrap_or(0.0);
+        *b = (through + f64::from(own)) as f32;
     }
     Ok(FloatLinear {
         rows,
