@@ -4,8 +4,8 @@
 #
 #   tools/callgrind.sh [OUT_DIR [RUN...]]   (default target/callgrind, every run)
 #
-# RUN: match-N-WEIGHTS (N 256 or 1024, WEIGHTS int8, f32 or int8-folded: residual blocks folded,
-# `gomatch-tools convert --fold-blocks`), localize-1024-int8 or
+# RUN: match-N-WEIGHTS (N 256 or 1024, WEIGHTS int8, f32 or int8-unfolded: the reference's residual
+# blocks, `gomatch-tools convert --fold-blocks=false`), localize-1024-int8 or
 # localize-1024-int8-features (the same localization with the map's view features).
 # Runs `cargo run --example workload` under callgrind for one match at N = 256 and 1024
 # (reference fixture weights; int8 weights with an f16 cost, and f32 weights with an f32

@@ -108,19 +108,19 @@ impl AcceptanceRule {
     /// 97 % of the right training poses (`tools/train/acceptance_reports.sh`,
     /// `models/acceptance/rule.json`).
     pub const FITTED: Self = Self {
-        bias: -5.960_991_4,
+        bias: -6.617_597,
         weights: [
-            1.255_907_4,
-            0.687_832_8,
-            4.967_073,
-            3.556_415_3,
-            2.977_296,
-            0.063_265_46,
-            2.542_356,
-            2.794_552,
-            -3.569_468,
+            1.391_758_8,
+            0.756_512_76,
+            5.158_784_4,
+            3.547_328_7,
+            2.506_542,
+            0.153_477_6,
+            1.193_282_1,
+            3.326_342_3,
+            -3.426_504,
         ],
-        min_confidence: 0.403_742_5,
+        min_confidence: 0.468_466_04,
     };
 
     /// Accepts every pose (confidence 0.5, threshold 0): the bare `min_inliers` rule.

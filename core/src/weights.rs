@@ -21,8 +21,8 @@
 //! Residual blocks keep the reference's three convolutions with their biases, or store
 //! `preconv` folded into `conv1` (`W1 (W0 x + b0) + b1 = (W1 W0) x + (W1 b0 + b1)`, exact in
 //! real arithmetic; [`Downstream::Folds`]): a third less of the encoder's and classifier's
-//! work, but f32 results move ~3e-4 away from the reference's, so the converter folds only
-//! when asked (`--fold-blocks`; docs/design.md, "The network").
+//! work, but f32 results move ~3e-4 away from the reference's, so the converter folds int8
+//! blobs only (its default; `--fold-blocks[=BOOL]`, docs/design.md, "The network").
 //! The converter folds one exact identity into the stored tensors: EdgeConv
 //! `W [f_i, f_j - f_i] = (Wa - Wb) f_i + Wb f_j`, so each self layer stores the centre part
 //! `Wa - Wb` and the neighbour part `Wb` (a `k`-fold saving; its rounding stays ~1e-5).

@@ -9,8 +9,8 @@
 //! `time N WEIGHTS RUNS` times the same match (`tools/bench_reference.sh` runs it beside
 //! the reference): two warm-up runs, then RUNS timed ones on this thread, and prints
 //! `RESULT {"n", "precision", "folded", "runs", "median_ms", "min_ms", "max_ms", "matches"}`.
-//! WEIGHTS is a precision or `int8-folded` (int8 with residual blocks folded,
-//! `gomatch-tools convert --fold-blocks`).
+//! WEIGHTS is a precision (int8 with the converter's folded residual blocks) or
+//! `int8-unfolded` (the reference's blocks, `gomatch-tools convert --fold-blocks=false`).
 
 use std::sync::Mutex;
 use std::time::Instant;
@@ -40,13 +40,14 @@ fn main() -> anyhow::Result<()> {
         ["localize"] => localize_once(false),
         ["localize", "features"] => localize_once(true),
         _ => anyhow::bail!(
-            "usage: workload match N WEIGHTS | workload time N WEIGHTS RUNS | workload localize [features] (WEIGHTS: f32, f16, int8 or int8-folded)"
+            "usage: workload match N WEIGHTS | workload time N WEIGHTS RUNS | workload localize [features] (WEIGHTS: f32, f16, int8 or int8-unfolded)"
         ),
     }
 }
 
-/// How the fixture weights are converted: a precision, residual blocks folded or not
-/// (`gomatch-tools convert --fold-blocks`).
+/// How the fixture weights are converted: a precision, and for int8 the converter's
+/// default of folded residual blocks or (`int8-unfolded`) the reference's layers
+/// (`gomatch-tools convert --fold-blocks=false`).
 #[derive(Clone, Copy)]
 struct Weights {
     precision: Precision,
@@ -57,12 +58,12 @@ fn parse_weights(name: &str) -> anyhow::Result<Weights> {
     let precision = match name {
         "f32" => Precision::F32,
         "f16" => Precision::F16,
-        "int8" | "int8-folded" => Precision::Int8,
+        "int8" | "int8-unfolded" => Precision::Int8,
         other => anyhow::bail!("unknown weights {other}"),
     };
     Ok(Weights {
         precision,
-        folded: name.ends_with("-folded"),
+        folded: Options::new(precision).fold_blocks && !name.ends_with("-unfolded"),
     })
 }
 

@@ -5,8 +5,8 @@
 //! from the optional `__metadata__["gomatch_config"]` JSON (defaults: 4 heads, k 10,
 //! 20 iterations, eps 0.1, threshold 0.5). Anything else is refused with the name of the
 //! offending tensor. The converter splits each EdgeConv weight into its centre (`Wa - Wb`)
-//! and neighbour (`Wb`) parts and, with `--fold-blocks`, folds each residual block's
-//! `preconv` into its `conv1` in f64 (`W1 W0`, `W1 b0 + b1`; the blob stores an empty
+//! and neighbour (`Wb`) parts and, for int8 by default (`--fold-blocks[=BOOL]`), folds each
+//! residual block's `preconv` into its `conv1` in f64 (`W1 W0`, `W1 b0 + b1`; the blob stores an empty
 //! `preconv`, `gomatch::weights::Downstream::Folds`).
 
 use std::collections::BTreeMap;
@@ -57,12 +57,12 @@ pub struct Args {
     /// Seed of the calibration pairs.
     #[arg(long, default_value_t = CALIBRATION_SEED)]
     pub calibration_seed: u64,
-    /// Fold each residual block's `preconv` into its `conv1`: a third less of the encoder's
-    /// and classifier's work and flash, but f32 results move ~3e-4 from the reference's and
-    /// the shipped int8 model folded accepts 3 wrong validation poses instead of 1
-    /// (docs/design.md, "The network").
-    #[arg(long)]
-    pub fold_blocks: bool,
+    /// Fold each residual block's `preconv` into its `conv1` (a third less of the encoder's
+    /// and classifier's work and flash; f32 results move ~3e-4 from the reference's). On by
+    /// default for int8, off for f32 and f16 (which stay the reference's layers):
+    /// `--fold-blocks` or `--fold-blocks=false` overrides (docs/design.md, "The network").
+    #[arg(long, num_args = 0..=1, require_equals = true, default_missing_value = "true")]
+    pub fold_blocks: Option<bool>,
 }
 
 impl Args {
@@ -82,7 +82,7 @@ impl Args {
             scale: self.scale,
             calibration_pairs: self.calibration_pairs,
             calibration_seed: self.calibration_seed,
-            fold_blocks: self.fold_blocks,
+            fold_blocks: self.fold_blocks.unwrap_or(defaults.fold_blocks),
             ..defaults
         }
     }
@@ -105,7 +105,8 @@ pub struct Options {
     pub calibration_pairs: usize,
     /// Their seed.
     pub calibration_seed: u64,
-    /// Whether residual blocks are stored folded ([`fold_residual_blocks`]).
+    /// Whether residual blocks are stored folded ([`fold_residual_blocks`]): by default
+    /// for int8 only.
     pub fold_blocks: bool,
 }
 
@@ -125,7 +126,7 @@ impl Options {
             scale: ScaleSearch::MaxAbs,
             calibration_pairs: CALIBRATION_PAIRS,
             calibration_seed: CALIBRATION_SEED,
-            fold_blocks: false,
+            fold_blocks: precision == Precision::Int8,
         }
     }
 
@@ -885,11 +886,31 @@ mod tests {
         }
     }
 
-    /// With `fold_blocks` (off by default) each block stores an empty `preconv` and
-    /// `conv1` = `W1 W0` with the bias `W1 b0 + b1`, summed in f64.
+    /// Blocks are folded by default for int8 only; `--fold-blocks[=BOOL]` overrides.
+    #[test]
+    fn blocks_are_folded_by_default_for_int8_only() {
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            args: Args,
+        }
+        let folded = |extra: &[&str]| {
+            let argv = ["convert", "--input", "in", "--output", "out"];
+            let cli =
+                <Cli as clap::Parser>::try_parse_from(argv.iter().chain(extra)).expect("parses");
+            cli.args.options().fold_blocks
+        };
+        assert!(folded(&["--precision", "int8"]));
+        assert!(!folded(&["--precision", "int8", "--fold-blocks=false"]));
+        assert!(!folded(&["--precision", "f32"]));
+        assert!(folded(&["--precision", "f32", "--fold-blocks"]));
+        assert!(!Options::new(Precision::F16).fold_blocks);
+    }
+
+    /// With `fold_blocks` each block stores an empty `preconv` and `conv1` = `W1 W0` with
+    /// the bias `W1 b0 + b1`, summed in f64.
     #[test]
     fn folded_blocks_store_the_product_of_preconv_and_conv1() {
-        assert!(!Options::new(Precision::Int8).fold_blocks);
         let ts = tensors(&SMALL);
         let options = Options {
             fold_blocks: true,

@@ -12,7 +12,8 @@ use gomatch::Precision;
 use crate::agreement::ReferenceMatches;
 use crate::calibration::synthetic_pairs;
 use crate::convert::{
-    float_tensors, int8_tensors, precisions, write_blob, write_blob_with, Options,
+    float_tensors, fold_residual_blocks, int8_tensors, precisions, write_blob, write_blob_with,
+    Options,
 };
 use crate::quantize::{Rounding, ScaleSearch};
 
@@ -58,6 +59,10 @@ pub fn run(args: &Args) -> Result<()> {
     )?;
     let pairs = synthetic_pairs(args.pairs, args.seed);
     let matches = ReferenceMatches::new(&reference, &pairs)?;
+    let mut tensors = tensors;
+    if base.fold_blocks {
+        fold_residual_blocks(&config, &mut tensors)?;
+    }
     // Every tensor rounded once with all of them int8; the variants pick from these.
     let int8 = int8_tensors(&config, &base, &tensors, &precisions(&config, &base))?;
     let names: Vec<String> = (0..tensors.len())
@@ -71,6 +76,9 @@ pub fn run(args: &Args) -> Result<()> {
         "tensor\tweights\tonly_int8_mean\tonly_int8_pooled\tall_but_int8_mean\tall_but_int8_pooled"
     );
     for (index, name) in names.iter().enumerate() {
+        if tensors[index].weights.is_empty() {
+            continue;
+        }
         let only = Options {
             keep_f32: names.iter().filter(|n| *n != name).cloned().collect(),
             ..base.clone()
