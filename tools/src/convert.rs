@@ -17,7 +17,7 @@ use gomatch::envelope::{self, HEADER_BYTES};
 use gomatch::error::BlobKind;
 use gomatch::weights::{
     tensor_count, tensor_index, tensor_spec, BlobHeader, ModelConfig, Precision, Section,
-    TensorRecord,
+    TensorRecord, TensorSpec,
 };
 use safetensors::{Dtype, SafeTensors};
 
@@ -661,12 +661,10 @@ pub fn write_blob_with(
         tensors.len(),
         tensor_count(config)
     );
-    let mut precisions = Vec::with_capacity(tensors.len());
     for (index, t) in tensors.iter().enumerate() {
         let spec = tensor_spec(config, index).context("tensor index past the layout")?;
-        let folded = spec.foldable && t.rows == 0 && t.cols == 0 && t.bias.is_empty();
         ensure!(
-            folded
+            is_folded(&spec, t)
                 || (spec.rows == t.rows && spec.cols == t.cols && spec.bias != t.bias.is_empty()),
             "tensor {}: {}x{} (bias {}), layout expects {}x{} (bias {})",
             spec.name,
@@ -677,13 +675,8 @@ pub fn write_blob_with(
             spec.cols,
             spec.bias
         );
-        // A folded tensor stores nothing: f32 keeps it out of the int8 fit.
-        precisions.push(if folded {
-            Precision::F32
-        } else {
-            options.precision_of(&spec.name.to_string())
-        });
     }
+    let precisions = precisions(config, options, tensors);
     let fitted;
     let int8 = match int8 {
         Some(given) => given,
@@ -717,12 +710,29 @@ pub fn write_blob_with(
     Ok(blob)
 }
 
-/// The precision of every tensor under `options`.
-pub fn precisions(config: &ModelConfig, options: &Options) -> Vec<Precision> {
+/// The precision of every tensor under `options`; a folded (empty) tensor stores nothing
+/// and counts as f32, which keeps it out of the int8 fit.
+pub fn precisions(
+    config: &ModelConfig,
+    options: &Options,
+    tensors: &[FloatLinear],
+) -> Vec<Precision> {
     (0..tensor_count(config))
         .filter_map(|i| tensor_spec(config, i))
-        .map(|spec| options.precision_of(&spec.name.to_string()))
+        .zip(tensors)
+        .map(|(spec, t)| {
+            if is_folded(&spec, t) {
+                Precision::F32
+            } else {
+                options.precision_of(&spec.name.to_string())
+            }
+        })
         .collect()
+}
+
+/// Whether `t` is a `preconv` folded into its `conv1` ([`fold_residual_blocks`]).
+fn is_folded(spec: &TensorSpec, t: &FloatLinear) -> bool {
+    spec.foldable && t.rows == 0 && t.cols == 0 && t.bias.is_empty()
 }
 
 /// The int8 encoding of every tensor stored in int8 (`None` for the others), rounded as
@@ -943,6 +953,25 @@ mod tests {
             .map(|k| f64::from(w1[3 * d + k]) * f64::from(b0[k]))
             .sum();
         assert_eq!(block.conv1.bias(3), (through + f64::from(b1[3])) as f32);
+    }
+
+    /// A folded `preconv` stores nothing: its precision is f32 whatever the options, so the
+    /// int8 fit (`gomatch-tools sensitivity` calls it directly) skips it.
+    #[test]
+    fn folded_tensors_count_as_f32_and_the_int8_fit_skips_them() {
+        let (config, mut floats) =
+            float_tensors(&serialize(&tensors(&SMALL), Dtype::F32, None)).expect("reads");
+        fold_residual_blocks(&config, &mut floats).expect("folds");
+        let options = Options::rounded_to_nearest(Precision::Int8);
+        let chosen = precisions(&config, &options, &floats);
+        let int8 = int8_tensors(&config, &options, &floats, &chosen).expect("rounds");
+        for ((t, precision), q) in floats.iter().zip(&chosen).zip(&int8) {
+            if t.weights.is_empty() {
+                assert_eq!((*precision, q.is_none()), (Precision::F32, true));
+            }
+        }
+        assert!(floats.iter().any(|t| t.weights.is_empty()));
+        assert!(chosen.contains(&Precision::Int8));
     }
 
     #[test]

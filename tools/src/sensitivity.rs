@@ -64,7 +64,12 @@ pub fn run(args: &Args) -> Result<()> {
         fold_residual_blocks(&config, &mut tensors)?;
     }
     // Every tensor rounded once with all of them int8; the variants pick from these.
-    let int8 = int8_tensors(&config, &base, &tensors, &precisions(&config, &base))?;
+    let int8 = int8_tensors(
+        &config,
+        &base,
+        &tensors,
+        &precisions(&config, &base, &tensors),
+    )?;
     let names: Vec<String> = (0..tensors.len())
         .filter_map(|i| tensor_spec(&config, i))
         .map(|s| s.name.to_string())
