@@ -6,8 +6,8 @@
 //! 20 iterations, eps 0.1, threshold 0.5). Anything else is refused with the name of the
 //! offending tensor. The converter splits each EdgeConv weight into its centre (`Wa - Wb`)
 //! and neighbour (`Wb`) parts and, for int8 by default (`--fold-blocks[=BOOL]`), folds each
-//! residual block's `preconv` into its `conv1` in f64 (`W1 W0`, `W1 b0 + b1`; the blob stores an empty
-//! `preconv`, `gomatch::weights::Downstream::Folds`).
+//! residual block's `preconv` into its `conv1` in f64 (`W1 W0`, `W1 b0 + b1`; the blob
+//! stores an empty `preconv`, `gomatch::weights::Downstream::Folds`).
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
