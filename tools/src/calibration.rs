@@ -750,7 +750,7 @@ fn groups(
 ) -> anyhow::Result<Vec<Vec<usize>>> {
     let mut groups = Vec::with_capacity(order.len());
     // A folded (empty) tensor is never read.
-    let mut covered: Vec<bool> = tensors.iter().map(|t| t.rows == 0).collect();
+    let mut covered: Vec<bool> = tensors.iter().map(FloatLinear::is_folded).collect();
     anyhow::ensure!(
         covered.len() == tensor_count(config),
         "{} tensors for a configuration of {}",

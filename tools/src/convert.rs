@@ -221,6 +221,21 @@ pub struct FloatLinear {
     pub bias: Vec<f32>,
 }
 
+impl FloatLinear {
+    /// A `preconv` folded into its `conv1` ([`fold_residual_blocks`]): 0 x 0, no bias.
+    pub const FOLDED: Self = FloatLinear {
+        rows: 0,
+        cols: 0,
+        weights: Vec::new(),
+        bias: Vec::new(),
+    };
+
+    /// Whether this is [`Self::FOLDED`]: it stores nothing and no layer reads it.
+    pub fn is_folded(&self) -> bool {
+        self.rows == 0 && self.cols == 0 && self.bias.is_empty()
+    }
+}
+
 /// Tensors kept in f32 by default for f16 weights: the encoder input layer and first
 /// residual block. On the reference fixtures they dominate the error of f16 weights (f16
 /// match agreement 0.932 -> 1.0 on the 300 x 500 fixture for +66 KiB).
@@ -266,12 +281,7 @@ pub fn fold_residual_blocks(config: &ModelConfig, tensors: &mut [FloatLinear]) -
             let (first, second) = (index(0)?, index(1)?);
             let folded = fold(&tensors[first], &tensors[second])?;
             tensors[second] = folded;
-            tensors[first] = FloatLinear {
-                rows: 0,
-                cols: 0,
-                weights: vec![],
-                bias: vec![],
-            };
+            tensors[first] = FloatLinear::FOLDED;
         }
     }
     Ok(())
@@ -664,7 +674,7 @@ pub fn write_blob_with(
     for (index, t) in tensors.iter().enumerate() {
         let spec = tensor_spec(config, index).context("tensor index past the layout")?;
         ensure!(
-            is_folded(&spec, t)
+            is_folded_as_declared(&spec, t)
                 || (spec.rows == t.rows && spec.cols == t.cols && spec.bias != t.bias.is_empty()),
             "tensor {}: {}x{} (bias {}), layout expects {}x{} (bias {})",
             spec.name,
@@ -721,7 +731,7 @@ pub fn precisions(
         .filter_map(|i| tensor_spec(config, i))
         .zip(tensors)
         .map(|(spec, t)| {
-            if is_folded(&spec, t) {
+            if is_folded_as_declared(&spec, t) {
                 Precision::F32
             } else {
                 options.precision_of(&spec.name.to_string())
@@ -730,9 +740,11 @@ pub fn precisions(
         .collect()
 }
 
-/// Whether `t` is a `preconv` folded into its `conv1` ([`fold_residual_blocks`]).
-fn is_folded(spec: &TensorSpec, t: &FloatLinear) -> bool {
-    spec.foldable && t.rows == 0 && t.cols == 0 && t.bias.is_empty()
+/// Whether `t` is folded where the layout allows it (a `preconv`, [`Downstream::Folds`]).
+///
+/// [`Downstream::Folds`]: gomatch::weights::Downstream::Folds
+fn is_folded_as_declared(spec: &TensorSpec, t: &FloatLinear) -> bool {
+    spec.foldable && t.is_folded()
 }
 
 /// The int8 encoding of every tensor stored in int8 (`None` for the others), rounded as

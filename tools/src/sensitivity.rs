@@ -41,7 +41,7 @@ pub struct Args {
 pub fn run(args: &Args) -> Result<()> {
     let bytes =
         std::fs::read(&args.input).with_context(|| format!("reading {}", args.input.display()))?;
-    let (config, tensors) = float_tensors(&bytes)?;
+    let (config, mut tensors) = float_tensors(&bytes)?;
     let base = Options {
         rounding: args.rounding,
         scale: args.scale,
@@ -59,7 +59,6 @@ pub fn run(args: &Args) -> Result<()> {
     )?;
     let pairs = synthetic_pairs(args.pairs, args.seed);
     let matches = ReferenceMatches::new(&reference, &pairs)?;
-    let mut tensors = tensors;
     if base.fold_blocks {
         fold_residual_blocks(&config, &mut tensors)?;
     }
@@ -81,7 +80,7 @@ pub fn run(args: &Args) -> Result<()> {
         "tensor\tweights\tonly_int8_mean\tonly_int8_pooled\tall_but_int8_mean\tall_but_int8_pooled"
     );
     for (index, name) in names.iter().enumerate() {
-        if tensors[index].weights.is_empty() {
+        if tensors[index].is_folded() {
             continue;
         }
         let only = Options {
