@@ -51,6 +51,20 @@ pub trait Fma: Copy {
         integer::block_sums(w, x, p)
     }
 
+    /// [`integer::scaled_group_sums`]: one row block of the integer kernel over a tile,
+    /// before the row scales (AVX2 on x86-64 keeps the outputs in registers; the integer
+    /// sums are exact and the f32 steps the same, so every path gives the same bits).
+    #[inline(always)]
+    fn scaled_group_sums(
+        self,
+        w: &[WeightPairs],
+        x: &[TilePairs],
+        groups: &[integer::GroupPairs],
+        point_scales: &[[f32; integer::TILE]],
+    ) -> [[f32; integer::TILE]; integer::ROWS] {
+        integer::scaled_group_sums(self, w, x, groups, point_scales)
+    }
+
     /// [`integer::interleave_pairs`]: int8 weight rows laid out as the integer kernel's
     /// register-block slots (SSE4.1 on x86-64; a pure permutation, so every path gives the
     /// same slots).
@@ -205,8 +219,14 @@ impl Fma for X86Fma {
     }
 
     #[inline(always)]
-    fn pair_sums(self, w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
-        integer::block_sums_avx2(self, w, x, p)
+    fn scaled_group_sums(
+        self,
+        w: &[WeightPairs],
+        x: &[TilePairs],
+        groups: &[integer::GroupPairs],
+        point_scales: &[[f32; integer::TILE]],
+    ) -> [[f32; integer::TILE]; integer::ROWS] {
+        integer::scaled_group_sums_avx2(self, w, x, groups, point_scales)
     }
 
     #[inline(always)]

@@ -50,8 +50,9 @@ pub struct WordAligned<T>(pub T);
 /// Rows are unpacked a panel at a time (each weight once per call). For each tile of
 /// [`TILE`] points, the input is quantized one group of [`GROUP`] channels at a time (each
 /// group has its own point scales; a part of a concatenated input starts a fresh pair and
-/// group), every row block of the panel passes over the group, and the group's exact sum,
-/// times its point scales, is added to the outputs in f32, group after group.
+/// group) into one tile of all the input's pairs; then each row block of the panel passes
+/// over the tile group by group, and each group's exact sum, times its point scales, is
+/// added to the block's outputs in f32, group after group ([`Fma::scaled_group_sums`]).
 #[inline(always)]
 pub fn linear_int8<F: Fma, W: WeightRows>(
     fma: F,
@@ -62,12 +63,14 @@ pub fn linear_int8<F: Fma, W: WeightRows>(
 ) {
     let layout = PairLayout::of(input);
     let pairs = layout.pairs();
+    let table = layout.group_table();
+    let groups = table.as_slice();
     let panel_len = (PANEL_PAIRS / pairs.max(1) / ROWS * ROWS).clamp(ROWS, PANEL_MAX_ROWS);
     let mut panel = WordAligned([[[0i16; 2]; ROWS]; PANEL_PAIRS / ROWS]);
     let mut row_scale = [0.0f32; PANEL_MAX_ROWS];
     let mut bias = [0.0f32; PANEL_MAX_ROWS];
-    let mut tile = WordAligned([[[0i16; 2]; TILE]; GROUP / 2]);
-    let mut y = [[0.0f32; TILE]; PANEL_MAX_ROWS];
+    let mut tile = WordAligned([[[0i16; 2]; TILE]; MAX_PAIRS]);
+    let mut point_scales = [[0.0f32; TILE]; MAX_GROUPS];
     let n = input.points();
     let mut p0 = rows.start;
     while p0 < rows.end {
@@ -77,31 +80,88 @@ pub fn linear_int8<F: Fma, W: WeightRows>(
         let mut i0 = 0;
         while i0 < n {
             let len = TILE.min(n - i0);
-            y[..count].fill([0.0; TILE]);
-            for group in layout.groups() {
-                let point_scale = quantize_group(input, &group, i0, len, &mut tile.0);
-                let x = &tile.0[..group.pairs.len()];
-                let mut r = 0;
-                while r < count {
-                    let block = &panel.0[r / ROWS * pairs..(r / ROWS + 1) * pairs];
-                    let sums = tile_sums(fma, &block[group.pairs.clone()], x);
-                    for (yb, row_sums) in y[r..count].iter_mut().zip(&sums) {
-                        for ((yt, &sum), &point) in yb.iter_mut().zip(row_sums).zip(&point_scale) {
-                            *yt += sum as f32 * point;
-                        }
-                    }
-                    r += ROWS;
-                }
+            for (group, scales) in layout.groups().zip(point_scales.iter_mut()) {
+                *scales = quantize_group(input, &group, i0, len, &mut tile.0[group.pairs.clone()]);
             }
-            for (r, yr) in y[..count].iter().enumerate() {
-                let (scale, offset) = (row_scale[r], bias[r]);
-                let values: [f32; TILE] = core::array::from_fn(|t| yr[t] * scale + offset);
-                emit(p0 + r, i0, &values[..len]);
+            let scales = &point_scales[..groups.len()];
+            for r in (0..count).step_by(ROWS) {
+                let block = &panel.0[r / ROWS * pairs..(r / ROWS + 1) * pairs];
+                let y = fma.scaled_group_sums(block, &tile.0, groups, scales);
+                for (r, yr) in (r..count).zip(&y) {
+                    let (scale, offset) = (row_scale[r], bias[r]);
+                    let values: [f32; TILE] = core::array::from_fn(|t| yr[t] * scale + offset);
+                    emit(p0 + r, i0, &values[..len]);
+                }
             }
             i0 += len;
         }
         p0 += count;
     }
+}
+
+/// The pairs of one group: `start..end` of a row block's and a tile's pairs.
+#[derive(Clone, Copy, Default)]
+pub struct GroupPairs {
+    /// First pair.
+    pub start: u16,
+    /// One past the last pair.
+    pub end: u16,
+}
+
+impl GroupPairs {
+    /// The pairs as a range.
+    #[inline(always)]
+    pub fn range(self) -> core::ops::Range<usize> {
+        usize::from(self.start)..usize::from(self.end)
+    }
+}
+
+/// The groups of a layer input in order (at most [`MAX_GROUPS`]).
+struct GroupTable {
+    groups: [GroupPairs; MAX_GROUPS],
+    len: usize,
+}
+
+impl GroupTable {
+    /// The groups.
+    #[inline(always)]
+    fn as_slice(&self) -> &[GroupPairs] {
+        &self.groups[..self.len]
+    }
+}
+
+/// Most pairs of a layer input: [`MAX_INPUT`] channels in up to three parts, each rounded up
+/// to even.
+const MAX_PAIRS: usize = MAX_INPUT / 2 + 2;
+/// Most groups of a layer input: one per [`GROUP`] channels of each part, plus each part's
+/// partial last group.
+const MAX_GROUPS: usize = MAX_INPUT / GROUP + 3;
+
+/// The outputs of one row block over a tile before the row scales: for each group, in
+/// order, its exact sums ([`Fma::pair_sums`]) times its point scales, added in f32 to
+/// outputs that start at zero (`y += sum as f32 * scale`).
+#[inline(always)]
+pub fn scaled_group_sums<F: Fma>(
+    fma: F,
+    w: &[WeightPairs],
+    x: &[TilePairs],
+    groups: &[GroupPairs],
+    point_scales: &[[f32; TILE]],
+) -> [[f32; TILE]; ROWS] {
+    let mut y = [[0.0f32; TILE]; ROWS];
+    for (group, scales) in groups.iter().zip(point_scales) {
+        let (w, x) = (&w[group.range()], &x[group.range()]);
+        for p in (0..TILE).step_by(POINTS) {
+            let sums = fma.pair_sums(w, x, p);
+            for (yr, row_sums) in y.iter_mut().zip(&sums) {
+                let out = yr[p..p + POINTS].iter_mut().zip(row_sums);
+                for ((yt, &sum), &scale) in out.zip(&scales[p..p + POINTS]) {
+                    *yt += sum as f32 * scale;
+                }
+            }
+        }
+    }
+    y
 }
 
 /// Channels that share one point scale. 15 bits of a point's largest value over a whole
@@ -145,6 +205,23 @@ impl PairLayout {
                 }
             })
         })
+    }
+
+    /// The groups' pair ranges, in order.
+    #[inline(always)]
+    fn group_table(&self) -> GroupTable {
+        let mut table = GroupTable {
+            groups: [GroupPairs::default(); MAX_GROUPS],
+            len: 0,
+        };
+        for (slot, group) in table.groups.iter_mut().zip(self.groups()) {
+            *slot = GroupPairs {
+                start: group.pairs.start as u16,
+                end: group.pairs.end as u16,
+            };
+            table.len += 1;
+        }
+        table
     }
 
     /// All pairs.
@@ -383,20 +460,6 @@ fn quantize(v: f32) -> i16 {
     ((v + ROUNDER).to_bits() as i32 - ROUNDER.to_bits() as i32) as i16
 }
 
-/// The exact sums of one row block over a tile: `ROWS x TILE`, in register blocks of
-/// `ROWS x POINTS`.
-#[inline(always)]
-fn tile_sums<F: Fma>(fma: F, w: &[WeightPairs], x: &[TilePairs]) -> [[i32; TILE]; ROWS] {
-    let mut sums = [[0i32; TILE]; ROWS];
-    for p in (0..TILE).step_by(POINTS) {
-        let block = fma.pair_sums(w, x, p);
-        for (row, part) in sums.iter_mut().zip(&block) {
-            row[p..p + POINTS].copy_from_slice(part);
-        }
-    }
-    sums
-}
-
 /// `ROWS x POINTS` sums starting at point `p` of the tile; the accumulators stay in registers.
 #[inline(always)]
 pub fn block_sums(w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
@@ -493,47 +556,61 @@ pub fn block_sums_dsp(w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums
     [[a00, a01], [a10, a11]]
 }
 
-/// [`block_sums`] with AVX2's `vpmaddwd` (`_mm256_madd_epi16`: eight pair products summed
-/// into 32-bit lanes per instruction); on x86-64 a block is a whole tile (`p` is 0).
+/// [`scaled_group_sums`] with AVX2: `vpmaddwd` (`_mm256_madd_epi16`: eight pair products
+/// summed into 32-bit lanes per instruction) for each group's sums over a whole tile (a
+/// register block is a tile), converted, scaled and added to the outputs in registers.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 #[allow(unsafe_code)]
-pub fn block_sums_avx2(
+pub fn scaled_group_sums_avx2(
     _avx2: super::dispatch::X86Fma,
     w: &[WeightPairs],
     x: &[TilePairs],
-    p: usize,
-) -> BlockSums {
+    groups: &[GroupPairs],
+    point_scales: &[[f32; TILE]],
+) -> [[f32; TILE]; ROWS] {
     use core::arch::x86_64::{
-        __m256i, _mm256_add_epi32, _mm256_loadu_si256, _mm256_madd_epi16, _mm256_set1_epi32,
-        _mm256_setzero_si256, _mm256_storeu_si256,
+        __m256i, _mm256_add_epi32, _mm256_add_ps, _mm256_cvtepi32_ps, _mm256_loadu_ps,
+        _mm256_loadu_si256, _mm256_madd_epi16, _mm256_mul_ps, _mm256_set1_epi32, _mm256_setzero_ps,
+        _mm256_setzero_si256, _mm256_storeu_ps,
     };
-    const HALF: usize = POINTS / 2;
-    debug_assert_eq!((p, POINTS, TILE), (0, 16, 16));
-    let mut sums = [[0i32; POINTS]; ROWS];
-    // SAFETY: an `X86Fma` exists only on a CPU with AVX2 (see `dispatch`). Each load reads
-    // 8 pairs (32 bytes) of a `[Pair; 16]` (64 bytes) at pair 0 or 8, and each store writes
-    // 8 `i32` (32 bytes) into a `[i32; 16]` at 0 or 8: all in bounds; `loadu`/`storeu`
-    // need no alignment.
+    const HALF: usize = TILE / 2;
+    const { assert!(POINTS == 16 && TILE == 16) };
+    let mut y = [[0.0f32; TILE]; ROWS];
+    // SAFETY: an `X86Fma` exists only on a CPU with AVX2 (see `dispatch`). Each integer load
+    // reads 8 pairs (32 bytes) of a `[Pair; 16]` (64 bytes) at pair 0 or 8, each float load
+    // 8 `f32` of a `[f32; 16]` at 0 or 8, and each store writes 8 `f32` into a `[f32; 16]`
+    // at 0 or 8: all in bounds; `loadu`/`storeu` need no alignment.
     unsafe {
-        let mut acc = [[_mm256_setzero_si256(); 2]; ROWS];
-        for (wk, xk) in w.iter().zip(x) {
-            let points: [__m256i; 2] =
-                [0, HALF].map(|at| _mm256_loadu_si256(xk.as_ptr().add(at).cast()));
-            for (a, wr) in acc.iter_mut().zip(wk) {
-                let weights = _mm256_set1_epi32(pair_bits(*wr));
-                for (lane, &xs) in a.iter_mut().zip(&points) {
-                    *lane = _mm256_add_epi32(*lane, _mm256_madd_epi16(weights, xs));
+        let mut out = [[_mm256_setzero_ps(); 2]; ROWS];
+        for (group, scales) in groups.iter().zip(point_scales) {
+            let pairs = w.get(group.range()).unwrap_or(&[]);
+            let tile = x.get(group.range()).unwrap_or(&[]);
+            let mut acc = [[_mm256_setzero_si256(); 2]; ROWS];
+            for (wk, xk) in pairs.iter().zip(tile) {
+                let points: [__m256i; 2] =
+                    [0, HALF].map(|at| _mm256_loadu_si256(xk.as_ptr().add(at).cast()));
+                for (a, wr) in acc.iter_mut().zip(wk) {
+                    let weights = _mm256_set1_epi32(pair_bits(*wr));
+                    for (lane, &xs) in a.iter_mut().zip(&points) {
+                        *lane = _mm256_add_epi32(*lane, _mm256_madd_epi16(weights, xs));
+                    }
+                }
+            }
+            let scale = [0, HALF].map(|at| _mm256_loadu_ps(scales.as_ptr().add(at)));
+            for (o, a) in out.iter_mut().zip(&acc) {
+                for ((o, &a), &s) in o.iter_mut().zip(a).zip(&scale) {
+                    *o = _mm256_add_ps(*o, _mm256_mul_ps(_mm256_cvtepi32_ps(a), s));
                 }
             }
         }
-        for (row, a) in sums.iter_mut().zip(&acc) {
-            for (at, lane) in [0, HALF].into_iter().zip(a) {
-                _mm256_storeu_si256(row.as_mut_ptr().add(at).cast(), *lane);
+        for (row, o) in y.iter_mut().zip(&out) {
+            for (at, lane) in [0, HALF].into_iter().zip(o) {
+                _mm256_storeu_ps(row.as_mut_ptr().add(at), *lane);
             }
         }
     }
-    sums
+    y
 }
 
 /// [`block_sums`] with AArch64 NEON: `smlal`/`smlal2` multiply four points' pairs by the
