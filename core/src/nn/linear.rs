@@ -452,17 +452,26 @@ fn small_block(
     acc
 }
 
-/// Writes `values` of `row` at points `i0..` of a channel-major matrix of `n` points.
+/// Writes `values` of `row` at points `i0..` of a channel-major matrix of `n` points. A full
+/// block of [`COL_BLOCK`] values is copied inline; a shorter one (a set's last points) out of
+/// line, so that the compiler does not merge both into one variable-length `memcpy` call.
 #[inline(always)]
 pub fn store(out: &mut [f32], n: usize, row: usize, i0: usize, values: &[f32]) {
-    let dst = &mut out[row * n + i0..row * n + i0 + values.len()];
+    let at = row * n + i0;
     match (
-        dst.first_chunk_mut::<COL_BLOCK>(),
+        out.get_mut(at..)
+            .and_then(|d| d.first_chunk_mut::<COL_BLOCK>()),
         values.first_chunk::<COL_BLOCK>(),
     ) {
         (Some(d), Some(v)) if values.len() == COL_BLOCK => *d = *v,
-        _ => dst.copy_from_slice(values),
+        _ => store_short(out, at, values),
     }
+}
+
+/// [`store`]'s copy of a short block.
+#[inline(never)]
+fn store_short(out: &mut [f32], at: usize, values: &[f32]) {
+    out[at..at + values.len()].copy_from_slice(values);
 }
 
 /// Adds `values` of `row` at points `i0..` of a channel-major matrix of `n` points.
