@@ -10,7 +10,7 @@
 use core::sync::atomic::{AtomicU8, Ordering};
 
 use super::fma::mul_add;
-use super::integer::{self, BlockSums, TilePairs, WeightPairs};
+use super::integer::{self, BlockSums, OutputBlock, QuantizedTile, TilePairs, WeightPairs};
 
 /// The CPU's multiply-add instructions: a fused multiply-add `a * b + c` with a single
 /// rounding (the f32 kernels) and the exact int16 pair multiply-add (the integer kernel);
@@ -55,14 +55,8 @@ pub trait Fma: Copy {
     /// before the row scales (AVX2 on x86-64 keeps the outputs in registers; the integer
     /// sums are exact and the f32 steps the same, so every path gives the same bits).
     #[inline(always)]
-    fn scaled_group_sums(
-        self,
-        w: &[WeightPairs],
-        x: &[TilePairs],
-        groups: &[integer::GroupPairs],
-        point_scales: &[[f32; integer::TILE]],
-    ) -> [[f32; integer::TILE]; integer::ROWS] {
-        integer::scaled_group_sums(self, w, x, groups, point_scales)
+    fn scaled_group_sums(self, w: &[WeightPairs], tile: QuantizedTile<'_>) -> OutputBlock {
+        integer::scaled_group_sums(self, w, tile)
     }
 
     /// [`integer::interleave_pairs`]: int8 weight rows laid out as the integer kernel's
@@ -219,14 +213,8 @@ impl Fma for X86Fma {
     }
 
     #[inline(always)]
-    fn scaled_group_sums(
-        self,
-        w: &[WeightPairs],
-        x: &[TilePairs],
-        groups: &[integer::GroupPairs],
-        point_scales: &[[f32; integer::TILE]],
-    ) -> [[f32; integer::TILE]; integer::ROWS] {
-        integer::scaled_group_sums_avx2(self, w, x, groups, point_scales)
+    fn scaled_group_sums(self, w: &[WeightPairs], tile: QuantizedTile<'_>) -> OutputBlock {
+        integer::scaled_group_sums_avx2(self, w, tile)
     }
 
     #[inline(always)]

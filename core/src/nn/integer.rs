@@ -83,10 +83,14 @@ pub fn linear_int8<F: Fma, W: WeightRows>(
             for (group, scales) in layout.groups().zip(point_scales.iter_mut()) {
                 *scales = quantize_group(input, &group, i0, len, &mut tile.0[group.pairs.clone()]);
             }
-            let scales = &point_scales[..groups.len()];
+            let quantized = QuantizedTile {
+                pairs: &tile.0,
+                groups,
+                scales: &point_scales[..groups.len()],
+            };
             for r in (0..count).step_by(ROWS) {
                 let block = &panel.0[r / ROWS * pairs..(r / ROWS + 1) * pairs];
-                let y = fma.scaled_group_sums(block, &tile.0, groups, scales);
+                let y = fma.scaled_group_sums(block, quantized);
                 for (r, yr) in (r..count).zip(&y) {
                     let (scale, offset) = (row_scale[r], bias[r]);
                     let values: [f32; TILE] = core::array::from_fn(|t| yr[t] * scale + offset);
@@ -98,6 +102,21 @@ pub fn linear_int8<F: Fma, W: WeightRows>(
         p0 += count;
     }
 }
+
+/// One tile of a layer input, quantized: all its pairs, and each group's pairs and point
+/// scales.
+#[derive(Clone, Copy)]
+pub struct QuantizedTile<'a> {
+    /// The tile's pairs (`[pair][point]`).
+    pub pairs: &'a [TilePairs],
+    /// The groups, in order.
+    pub groups: &'a [GroupPairs],
+    /// Each group's point scales.
+    pub scales: &'a [[f32; TILE]],
+}
+
+/// The outputs of one row block over a tile, before the row scales.
+pub type OutputBlock = [[f32; TILE]; ROWS];
 
 /// The pairs of one group: `start..end` of a row block's and a tile's pairs.
 #[derive(Clone, Copy, Default)]
@@ -144,13 +163,11 @@ const MAX_GROUPS: usize = MAX_INPUT / GROUP + 3;
 pub fn scaled_group_sums<F: Fma>(
     fma: F,
     w: &[WeightPairs],
-    x: &[TilePairs],
-    groups: &[GroupPairs],
-    point_scales: &[[f32; TILE]],
-) -> [[f32; TILE]; ROWS] {
+    tile: QuantizedTile<'_>,
+) -> OutputBlock {
     let mut y = [[0.0f32; TILE]; ROWS];
-    for (group, scales) in groups.iter().zip(point_scales) {
-        let (w, x) = (&w[group.range()], &x[group.range()]);
+    for (group, scales) in tile.groups.iter().zip(tile.scales) {
+        let (w, x) = (&w[group.range()], &tile.pairs[group.range()]);
         for p in (0..TILE).step_by(POINTS) {
             let sums = fma.pair_sums(w, x, p);
             for (yr, row_sums) in y.iter_mut().zip(&sums) {
@@ -565,10 +582,8 @@ pub fn block_sums_dsp(w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums
 pub fn scaled_group_sums_avx2(
     _avx2: super::dispatch::X86Fma,
     w: &[WeightPairs],
-    x: &[TilePairs],
-    groups: &[GroupPairs],
-    point_scales: &[[f32; TILE]],
-) -> [[f32; TILE]; ROWS] {
+    quantized: QuantizedTile<'_>,
+) -> OutputBlock {
     use core::arch::x86_64::{
         __m256i, _mm256_add_epi32, _mm256_add_ps, _mm256_cvtepi32_ps, _mm256_loadu_ps,
         _mm256_loadu_si256, _mm256_madd_epi16, _mm256_mul_ps, _mm256_set1_epi32, _mm256_setzero_ps,
@@ -583,9 +598,9 @@ pub fn scaled_group_sums_avx2(
     // at 0 or 8: all in bounds; `loadu`/`storeu` need no alignment.
     unsafe {
         let mut out = [[_mm256_setzero_ps(); 2]; ROWS];
-        for (group, scales) in groups.iter().zip(point_scales) {
+        for (group, scales) in quantized.groups.iter().zip(quantized.scales) {
             let pairs = w.get(group.range()).unwrap_or(&[]);
-            let tile = x.get(group.range()).unwrap_or(&[]);
+            let tile = quantized.pairs.get(group.range()).unwrap_or(&[]);
             let mut acc = [[_mm256_setzero_si256(); 2]; ROWS];
             for (wk, xk) in pairs.iter().zip(tile) {
                 let points: [__m256i; 2] =
