@@ -63,14 +63,12 @@ pub fn linear_int8<F: Fma, W: WeightRows>(
 ) {
     let layout = PairLayout::of(input);
     let pairs = layout.pairs();
-    let table = layout.group_table();
-    let groups = table.as_slice();
     let panel_len = (PANEL_PAIRS / pairs.max(1) / ROWS * ROWS).clamp(ROWS, PANEL_MAX_ROWS);
     let mut panel = WordAligned([[[0i16; 2]; ROWS]; PANEL_PAIRS / ROWS]);
     let mut row_scale = [0.0f32; PANEL_MAX_ROWS];
     let mut bias = [0.0f32; PANEL_MAX_ROWS];
     let mut tile = WordAligned([[[0i16; 2]; TILE]; MAX_PAIRS]);
-    let mut point_scales = [[0.0f32; TILE]; MAX_GROUPS];
+    let mut groups = [ScaledGroup::EMPTY; MAX_GROUPS];
     let n = input.points();
     let mut p0 = rows.start;
     while p0 < rows.end {
@@ -80,13 +78,19 @@ pub fn linear_int8<F: Fma, W: WeightRows>(
         let mut i0 = 0;
         while i0 < n {
             let len = TILE.min(n - i0);
-            for (group, scales) in layout.groups().zip(point_scales.iter_mut()) {
-                *scales = quantize_group(input, &group, i0, len, &mut tile.0[group.pairs.clone()]);
+            let mut group_count = 0;
+            for (slot, group) in groups.iter_mut().zip(layout.groups()) {
+                let pairs = &mut tile.0[group.pairs.clone()];
+                let scales = quantize_group(input, &group, i0, len, pairs);
+                *slot = ScaledGroup {
+                    pairs: (group.pairs.start, group.pairs.end),
+                    scales,
+                };
+                group_count += 1;
             }
             let quantized = QuantizedTile {
                 pairs: &tile.0,
-                groups,
-                scales: &point_scales[..groups.len()],
+                groups: &groups[..group_count],
             };
             for r in (0..count).step_by(ROWS) {
                 let block = &panel.0[r / ROWS * pairs..(r / ROWS + 1) * pairs];
@@ -103,49 +107,39 @@ pub fn linear_int8<F: Fma, W: WeightRows>(
     }
 }
 
-/// One tile of a layer input, quantized: all its pairs, and each group's pairs and point
-/// scales.
+/// One tile of a layer input, quantized: all its pairs, and its groups in order.
 #[derive(Clone, Copy)]
 pub struct QuantizedTile<'a> {
     /// The tile's pairs (`[pair][point]`).
     pub pairs: &'a [TilePairs],
     /// The groups, in order.
-    pub groups: &'a [GroupPairs],
-    /// Each group's point scales.
-    pub scales: &'a [[f32; TILE]],
+    pub groups: &'a [ScaledGroup],
 }
 
 /// The outputs of one row block over a tile, before the row scales.
 pub type OutputBlock = [[f32; TILE]; ROWS];
 
-/// The pairs of one group: `start..end` of a row block's and a tile's pairs.
-#[derive(Clone, Copy, Default)]
-pub struct GroupPairs {
-    /// First pair.
-    pub start: u16,
-    /// One past the last pair.
-    pub end: u16,
+/// One group of a quantized tile: its pairs (`start..end` of a row block's and the tile's
+/// pairs) and its point scales.
+#[derive(Clone, Copy)]
+pub struct ScaledGroup {
+    /// First pair and one past the last.
+    pub pairs: (usize, usize),
+    /// Each point's scale.
+    pub scales: [f32; TILE],
 }
 
-impl GroupPairs {
+impl ScaledGroup {
+    /// No pairs.
+    const EMPTY: Self = ScaledGroup {
+        pairs: (0, 0),
+        scales: [0.0; TILE],
+    };
+
     /// The pairs as a range.
     #[inline(always)]
-    pub fn range(self) -> core::ops::Range<usize> {
-        usize::from(self.start)..usize::from(self.end)
-    }
-}
-
-/// The groups of a layer input in order (at most [`MAX_GROUPS`]).
-struct GroupTable {
-    groups: [GroupPairs; MAX_GROUPS],
-    len: usize,
-}
-
-impl GroupTable {
-    /// The groups.
-    #[inline(always)]
-    fn as_slice(&self) -> &[GroupPairs] {
-        &self.groups[..self.len]
+    pub fn range(&self) -> core::ops::Range<usize> {
+        self.pairs.0..self.pairs.1
     }
 }
 
@@ -166,13 +160,13 @@ pub fn scaled_group_sums<F: Fma>(
     tile: QuantizedTile<'_>,
 ) -> OutputBlock {
     let mut y = [[0.0f32; TILE]; ROWS];
-    for (group, scales) in tile.groups.iter().zip(tile.scales) {
+    for group in tile.groups {
         let (w, x) = (&w[group.range()], &tile.pairs[group.range()]);
         for p in (0..TILE).step_by(POINTS) {
             let sums = fma.pair_sums(w, x, p);
             for (yr, row_sums) in y.iter_mut().zip(&sums) {
                 let out = yr[p..p + POINTS].iter_mut().zip(row_sums);
-                for ((yt, &sum), &scale) in out.zip(&scales[p..p + POINTS]) {
+                for ((yt, &sum), &scale) in out.zip(&group.scales[p..p + POINTS]) {
                     *yt += sum as f32 * scale;
                 }
             }
@@ -222,23 +216,6 @@ impl PairLayout {
                 }
             })
         })
-    }
-
-    /// The groups' pair ranges, in order.
-    #[inline(always)]
-    fn group_table(&self) -> GroupTable {
-        let mut table = GroupTable {
-            groups: [GroupPairs::default(); MAX_GROUPS],
-            len: 0,
-        };
-        for (slot, group) in table.groups.iter_mut().zip(self.groups()) {
-            *slot = GroupPairs {
-                start: group.pairs.start as u16,
-                end: group.pairs.end as u16,
-            };
-            table.len += 1;
-        }
-        table
     }
 
     /// All pairs.
@@ -598,7 +575,7 @@ pub fn scaled_group_sums_avx2(
     // at 0 or 8: all in bounds; `loadu`/`storeu` need no alignment.
     unsafe {
         let mut out = [[_mm256_setzero_ps(); 2]; ROWS];
-        for (group, scales) in quantized.groups.iter().zip(quantized.scales) {
+        for group in quantized.groups {
             let pairs = w.get(group.range()).unwrap_or(&[]);
             let tile = quantized.pairs.get(group.range()).unwrap_or(&[]);
             let mut acc = [[_mm256_setzero_si256(); 2]; ROWS];
@@ -612,7 +589,7 @@ pub fn scaled_group_sums_avx2(
                     }
                 }
             }
-            let scale = [0, HALF].map(|at| _mm256_loadu_ps(scales.as_ptr().add(at)));
+            let scale = [0, HALF].map(|at| _mm256_loadu_ps(group.scales.as_ptr().add(at)));
             for (o, a) in out.iter_mut().zip(&acc) {
                 for ((o, &a), &s) in o.iter_mut().zip(a).zip(&scale) {
                     *o = _mm256_add_ps(*o, _mm256_mul_ps(_mm256_cvtepi32_ps(a), s));
