@@ -9,7 +9,7 @@
 //! an online softmax, so no `N x N x heads` score buffer exists.
 
 use crate::limits::{MAX_FEATURE_DIM, MAX_HEADS, MAX_KNN};
-use crate::nn::blocking::{self, EDGE_CHANNELS};
+use crate::nn::blocking::{self, channels_for_rows, EDGE_CHANNELS, SHORT_ROW_CHANNELS};
 use crate::nn::dispatch::{with_fma, Fma, Kernel};
 use crate::nn::linear::{accumulate, chunk_rows, larger, store, store_point_major};
 use crate::nn::{
@@ -287,12 +287,13 @@ fn edge_conv<F: Fma>(
     linear(centre, input, 0..channels, |r, i0, v| {
         store(out, n, r, i0, v)
     });
-    // Channels finished together, and the neighbour rows a chunk needs at least.
-    let group = if scratch.len() >= n * (2 * EDGE_CHANNELS + EDGE_CHANNELS.max(ROW_BLOCK)) {
-        EDGE_CHANNELS
-    } else {
-        1
-    };
+    // Channels finished together (as many as the scratch holds), and the neighbour rows a
+    // chunk needs at least.
+    let fits = |g: usize| scratch.len() >= n * (2 * g + g.max(ROW_BLOCK));
+    let group = [channels_for_rows(EDGE_CHANNELS, n), EDGE_CHANNELS]
+        .into_iter()
+        .find(|&g| fits(g))
+        .unwrap_or(1);
     let least_rows = n * group.max(ROW_BLOCK);
     let (maxima, rest) = scratch.split_at_mut(group * n);
     let (point_major, rest) = rest.split_at_mut(if group > 1 { group * n } else { 0 });
@@ -322,7 +323,9 @@ fn edge_conv<F: Fma>(
                 point_major,
                 edges,
             };
-            if g == EDGE_CHANNELS {
+            if g == SHORT_ROW_CHANNELS {
+                channel_group.finish::<F, SHORT_ROW_CHANNELS>(fma);
+            } else if g == EDGE_CHANNELS {
                 channel_group.finish::<F, EDGE_CHANNELS>(fma);
             } else {
                 channel_group.finish::<F, 1>(fma);

@@ -6,6 +6,16 @@
 
 pub use sizes::*;
 
+/// Channels whose statistics are summed together on rows of `n` points: [`SHORT_ROW_CHANNELS`]
+/// on short rows, else `channels`.
+pub const fn channels_for_rows(channels: usize, n: usize) -> usize {
+    if n <= SHORT_ROW_POINTS {
+        SHORT_ROW_CHANNELS
+    } else {
+        channels
+    }
+}
+
 #[cfg(not(target_arch = "arm"))]
 mod sizes {
     /// f32 linear kernel, points per register block: two AVX2 vectors per row of the
@@ -37,6 +47,13 @@ mod sizes {
     /// Channels of an edge convolution finished together: the lanes of one AVX2 vector
     /// (edge values, their f64 sums in two vectors, the maxima).
     pub const EDGE_CHANNELS: usize = 8;
+    /// [`NORM_CHANNELS`] and [`EDGE_CHANNELS`] on rows of at most [`SHORT_ROW_POINTS`]
+    /// points: sixteen f64 sums are four chains of adds in flight instead of two. On longer
+    /// rows sixteen rows 4 KiB apart fall in one L1 set and evict each other (N = 1024 was
+    /// slower with sixteen).
+    pub const SHORT_ROW_CHANNELS: usize = 16;
+    /// Most points of a short row (2 KiB of `f32`).
+    pub const SHORT_ROW_POINTS: usize = 512;
 }
 
 #[cfg(target_arch = "arm")]
@@ -68,4 +85,9 @@ mod sizes {
     /// Channels of an edge convolution finished together: four (their sums and maxima stay
     /// in the FPU's registers, and each neighbour index is read once for all four).
     pub const EDGE_CHANNELS: usize = 4;
+    /// [`NORM_CHANNELS`] and [`EDGE_CHANNELS`] on short rows: the same four (more sums
+    /// would not stay in the FPU's registers).
+    pub const SHORT_ROW_CHANNELS: usize = 4;
+    /// Most points of a short row.
+    pub const SHORT_ROW_POINTS: usize = 512;
 }

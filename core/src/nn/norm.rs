@@ -1,6 +1,6 @@
 //! Instance normalisation, L2 normalisation and the activations.
 
-use super::blocking::NORM_CHANNELS;
+use super::blocking::{channels_for_rows, NORM_CHANNELS, SHORT_ROW_CHANNELS};
 use super::dispatch::{with_fma, Fma, Kernel, Portable};
 use super::sqrt::sqrt;
 
@@ -148,8 +148,9 @@ pub fn instance_norm(x: &mut [f32]) {
 }
 
 /// [`instance_norm`] of every row (channel) of `x`, `n` values a row. Rows are taken
-/// [`NORM_CHANNELS`] at a time: each row's sums still run over its values in order, and the
-/// rows' independent sums overlap in the CPU (one row alone waits for each f64 add).
+/// [`NORM_CHANNELS`] at a time ([`SHORT_ROW_CHANNELS`] on short rows): each row's sums still
+/// run over its values in order, and the rows' independent sums overlap in the CPU (one row
+/// alone waits for each f64 add).
 pub fn instance_norm_rows(x: &mut [f32], n: usize) {
     if n > 0 {
         with_fma(InstanceNormRows { x, n });
@@ -166,13 +167,23 @@ impl Kernel<()> for InstanceNormRows<'_> {
     #[inline(always)]
     fn run<F: Fma>(self, fma: F) {
         let n = self.n;
-        let mut groups = self.x.chunks_exact_mut(n * NORM_CHANNELS);
-        for group in &mut groups {
-            normalize_rows::<F, NORM_CHANNELS>(fma, group, n);
+        if channels_for_rows(NORM_CHANNELS, n) == SHORT_ROW_CHANNELS {
+            normalize_groups::<F, SHORT_ROW_CHANNELS>(fma, self.x, n);
+        } else {
+            normalize_groups::<F, NORM_CHANNELS>(fma, self.x, n);
         }
-        for row in groups.into_remainder().chunks_exact_mut(n) {
-            normalize_rows::<F, 1>(fma, row, n);
-        }
+    }
+}
+
+/// Instance norm of the rows of `x` (`n` values a row), `G` rows at a time, then one at a time.
+#[inline(always)]
+fn normalize_groups<F: Fma, const G: usize>(fma: F, x: &mut [f32], n: usize) {
+    let mut groups = x.chunks_exact_mut(n * G);
+    for group in &mut groups {
+        normalize_rows::<F, G>(fma, group, n);
+    }
+    for row in groups.into_remainder().chunks_exact_mut(n) {
+        normalize_rows::<F, 1>(fma, row, n);
     }
 }
 
