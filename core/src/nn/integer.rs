@@ -368,7 +368,8 @@ pub fn interleave_pairs_sse41(
 /// Quantizes points `i0..i0 + len` of `group`'s channels into `tile` (`[pair][point]`, zero
 /// in the pad of an odd last channel) and returns the group's point scales (`max|x| / 32767`
 /// over its channels, 0 for an all-zero point). A part too short reads as zeros, as in the
-/// f32 kernel. A full tile is read in place; a short one is first copied, zero-padded.
+/// f32 kernel. A full tile is read in place (the part's values found once for the group);
+/// a short one is first copied, zero-padded.
 #[inline(always)]
 fn quantize_group(
     input: &Input<'_>,
@@ -381,8 +382,12 @@ fn quantize_group(
     // Channels lie one after the other: when the last has the whole tile, all have.
     let last = group.channels.end.saturating_sub(1);
     if channel(last).first_chunk::<TILE>().is_some() {
+        let first = group.channels.start;
+        let (values, stride) = input.channels_from(group.part, first, i0);
         quantize_channels(group, tile, |c| {
-            channel(c).first_chunk::<TILE>().unwrap_or(&[0.0; TILE])
+            let row = values.get((c - first) * stride..);
+            row.and_then(|v| v.first_chunk::<TILE>())
+                .unwrap_or(&[0.0; TILE])
         })
     } else {
         let mut values = [[0.0f32; TILE]; GROUP];

@@ -166,6 +166,15 @@ impl<'a> Input<'a> {
         self.rows
     }
 
+    /// Part `part`'s values from channel `first` at point `i0` on, and the distance from one
+    /// channel to the next (for a caller that takes a few points of each of several
+    /// channels).
+    #[inline(always)]
+    pub fn channels_from(&self, part: usize, first: usize, i0: usize) -> (&'a [f32], usize) {
+        let at = self.start + i0 + first * self.stride;
+        (self.parts[part].get(at..).unwrap_or(&[]), self.stride)
+    }
+
     /// Channel `channel` of part `part` at points `i0..i0 + len` (fewer where the part is
     /// too short).
     #[inline(always)]
