@@ -11,6 +11,7 @@ use core::sync::atomic::{AtomicU8, Ordering};
 
 use super::fma::mul_add;
 use super::integer::{self, BlockSums, OutputBlock, QuantizedTile, TilePairs, WeightPairs};
+use super::norm::{self, StatSum};
 
 /// The CPU's multiply-add instructions: a fused multiply-add `a * b + c` with a single
 /// rounding (the f32 kernels) and the exact int16 pair multiply-add (the integer kernel);
@@ -65,6 +66,19 @@ pub trait Fma: Copy {
     #[inline(always)]
     fn interleave_pairs(self, rows: [&[u8]; integer::ROWS], out: &mut [WeightPairs]) {
         integer::interleave_pairs(rows, out);
+    }
+
+    /// [`norm::row_sums`]: instance norm's running sums of `G` rows side by side (AVX2 on
+    /// x86-64 for sixteen rows, with the default f64 statistics; the same additions in the
+    /// same order, so every path gives the same bits).
+    #[inline(always)]
+    fn row_sums<const G: usize>(
+        self,
+        rows: &[&[f32]; G],
+        n: usize,
+        means: Option<&[f32; G]>,
+    ) -> [StatSum; G] {
+        norm::row_sums(rows, n, means)
     }
 
     /// `out[i] = bits[i]` read as an f16 (`out` as long as `bits`), exact for every finite
@@ -220,6 +234,23 @@ impl Fma for X86Fma {
     #[inline(always)]
     fn interleave_pairs(self, rows: [&[u8]; integer::ROWS], out: &mut [WeightPairs]) {
         integer::interleave_pairs_sse41(self, rows, out);
+    }
+
+    #[inline(always)]
+    fn row_sums<const G: usize>(
+        self,
+        rows: &[&[f32]; G],
+        n: usize,
+        means: Option<&[f32; G]>,
+    ) -> [StatSum; G] {
+        #[cfg(not(feature = "f32-statistics"))]
+        if let Ok(rows16) = <&[&[f32]; 16]>::try_from(rows.as_slice()) {
+            // `G` is 16 here, so `means` converts too.
+            let means16 = means.and_then(|m| <&[f32; 16]>::try_from(m.as_slice()).ok());
+            let sums = norm::row_sums_avx2(self, rows16, n, means16);
+            return core::array::from_fn(|c| sums[c]);
+        }
+        norm::row_sums(rows, n, means)
     }
 
     #[inline(always)]
