@@ -374,11 +374,7 @@ impl EdgeChannels<'_, '_> {
         let terms: &[f32] = if G == 1 {
             b
         } else {
-            for (j, lanes) in point_major.chunks_exact_mut(G).take(n).enumerate() {
-                for (c, lane) in lanes.iter_mut().enumerate() {
-                    *lane = b[c * n + j];
-                }
-            }
+            fma.point_major::<G>(b, n, point_major);
             point_major
         };
         let neighbour = |j: u16| -> [f32; G] {

@@ -12,6 +12,7 @@ use core::sync::atomic::{AtomicU8, Ordering};
 use super::fma::mul_add;
 use super::integer::{self, BlockSums, OutputBlock, QuantizedTile, TilePairs, WeightPairs};
 use super::norm::{self, StatSum};
+use super::transpose;
 
 /// The CPU's multiply-add instructions: a fused multiply-add `a * b + c` with a single
 /// rounding (the f32 kernels) and the exact int16 pair multiply-add (the integer kernel);
@@ -79,6 +80,13 @@ pub trait Fma: Copy {
         means: Option<&[f32; G]>,
     ) -> [StatSum; G] {
         norm::row_sums(rows, n, means)
+    }
+
+    /// [`transpose::point_major`]: `G` channel-major rows laid out point by point (AVX2
+    /// 8 x 8 transposes on x86-64; a pure permutation, so every path gives the same values).
+    #[inline(always)]
+    fn point_major<const G: usize>(self, rows: &[f32], n: usize, out: &mut [f32]) {
+        transpose::point_major::<G>(rows, n, out);
     }
 
     /// `out[i] = bits[i]` read as an f16 (`out` as long as `bits`), exact for every finite
@@ -234,6 +242,11 @@ impl Fma for X86Fma {
     #[inline(always)]
     fn interleave_pairs(self, rows: [&[u8]; integer::ROWS], out: &mut [WeightPairs]) {
         integer::interleave_pairs_sse41(self, rows, out);
+    }
+
+    #[inline(always)]
+    fn point_major<const G: usize>(self, rows: &[f32], n: usize, out: &mut [f32]) {
+        transpose::point_major_avx2::<G>(self, rows, n, out);
     }
 
     #[inline(always)]

@@ -18,6 +18,7 @@ pub mod norm;
 pub mod residual;
 pub mod sqrt;
 pub mod tap;
+pub mod transpose;
 
 pub use exp::exp;
 pub use linear::{linear, Input, WeightRows, COL_BLOCK, MAX_INPUT, ROW_BLOCK, SMALL_SET};

@@ -267,7 +267,7 @@ pub fn row_sums_avx2(
         let mut acc: [__m256d; 4] = [_mm256_setzero_pd(); 4];
         for b in 0..blocks {
             let half = |h: usize| {
-                transpose8(
+                super::transpose::transpose8(
                     avx2,
                     core::array::from_fn(|i| _mm256_loadu_ps(rows[8 * h + i].as_ptr().add(8 * b))),
                 )
@@ -298,54 +298,6 @@ pub fn row_sums_avx2(
         sum.sum += r.sum;
     }
     sums
-}
-
-/// The 8 x 8 transpose of eight rows of 8 `f32`: `out[t][i] = rows[i][t]` (`vunpck*ps`,
-/// `vshufps`, `vperm2f128`).
-#[cfg(all(target_arch = "x86_64", not(feature = "f32-statistics")))]
-#[inline(always)]
-#[allow(unsafe_code)]
-fn transpose8(
-    _avx2: super::dispatch::X86Fma,
-    r: [core::arch::x86_64::__m256; 8],
-) -> [core::arch::x86_64::__m256; 8] {
-    use core::arch::x86_64::{
-        _mm256_permute2f128_ps, _mm256_shuffle_ps, _mm256_unpackhi_ps, _mm256_unpacklo_ps,
-    };
-    // SAFETY: an `X86Fma` exists only on a CPU with AVX2 (see `dispatch`); the intrinsics
-    // only touch registers.
-    unsafe {
-        let t = [
-            _mm256_unpacklo_ps(r[0], r[1]),
-            _mm256_unpackhi_ps(r[0], r[1]),
-            _mm256_unpacklo_ps(r[2], r[3]),
-            _mm256_unpackhi_ps(r[2], r[3]),
-            _mm256_unpacklo_ps(r[4], r[5]),
-            _mm256_unpackhi_ps(r[4], r[5]),
-            _mm256_unpacklo_ps(r[6], r[7]),
-            _mm256_unpackhi_ps(r[6], r[7]),
-        ];
-        let u = [
-            _mm256_shuffle_ps::<0x44>(t[0], t[2]),
-            _mm256_shuffle_ps::<0xEE>(t[0], t[2]),
-            _mm256_shuffle_ps::<0x44>(t[1], t[3]),
-            _mm256_shuffle_ps::<0xEE>(t[1], t[3]),
-            _mm256_shuffle_ps::<0x44>(t[4], t[6]),
-            _mm256_shuffle_ps::<0xEE>(t[4], t[6]),
-            _mm256_shuffle_ps::<0x44>(t[5], t[7]),
-            _mm256_shuffle_ps::<0xEE>(t[5], t[7]),
-        ];
-        [
-            _mm256_permute2f128_ps::<0x20>(u[0], u[4]),
-            _mm256_permute2f128_ps::<0x20>(u[1], u[5]),
-            _mm256_permute2f128_ps::<0x20>(u[2], u[6]),
-            _mm256_permute2f128_ps::<0x20>(u[3], u[7]),
-            _mm256_permute2f128_ps::<0x31>(u[0], u[4]),
-            _mm256_permute2f128_ps::<0x31>(u[1], u[5]),
-            _mm256_permute2f128_ps::<0x31>(u[2], u[6]),
-            _mm256_permute2f128_ps::<0x31>(u[3], u[7]),
-        ]
-    }
 }
 
 /// `max(x, 0)`.
