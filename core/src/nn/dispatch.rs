@@ -11,7 +11,7 @@ use core::sync::atomic::{AtomicU8, Ordering};
 
 use super::fma::mul_add;
 use super::integer::{self, BlockSums, OutputBlock, QuantizedTile, TilePairs, WeightPairs};
-use super::norm::{self, StatSum};
+use super::norm::{self, RowPass, StatSum};
 use super::transpose;
 
 /// The CPU's multiply-add instructions: a fused multiply-add `a * b + c` with a single
@@ -73,13 +73,8 @@ pub trait Fma: Copy {
     /// x86-64 for sixteen rows, with the default f64 statistics; the same additions in the
     /// same order, so every path gives the same bits).
     #[inline(always)]
-    fn row_sums<const G: usize>(
-        self,
-        rows: &[&[f32]; G],
-        n: usize,
-        means: Option<&[f32; G]>,
-    ) -> [StatSum; G] {
-        norm::row_sums(rows, n, means)
+    fn row_sums<const G: usize>(self, pass: RowPass<'_, G>) -> [StatSum; G] {
+        norm::row_sums(pass)
     }
 
     /// [`transpose::point_major`]: `G` channel-major rows laid out point by point (AVX2
@@ -250,20 +245,18 @@ impl Fma for X86Fma {
     }
 
     #[inline(always)]
-    fn row_sums<const G: usize>(
-        self,
-        rows: &[&[f32]; G],
-        n: usize,
-        means: Option<&[f32; G]>,
-    ) -> [StatSum; G] {
+    fn row_sums<const G: usize>(self, pass: RowPass<'_, G>) -> [StatSum; G] {
         #[cfg(not(feature = "f32-statistics"))]
-        if let Ok(rows16) = <&[&[f32]; 16]>::try_from(rows.as_slice()) {
+        if let Ok(rows) = <&[&[f32]; 16]>::try_from(pass.rows.as_slice()) {
             // `G` is 16 here, so `means` converts too.
-            let means16 = means.and_then(|m| <&[f32; 16]>::try_from(m.as_slice()).ok());
-            let sums = norm::row_sums_avx2(self, rows16, n, means16);
+            let means = pass
+                .means
+                .and_then(|m| <&[f32; 16]>::try_from(m.as_slice()).ok());
+            let n = pass.n;
+            let sums = norm::row_sums_avx2(self, RowPass { rows, n, means });
             return core::array::from_fn(|c| sums[c]);
         }
-        norm::row_sums(rows, n, means)
+        norm::row_sums(pass)
     }
 
     #[inline(always)]

@@ -197,10 +197,18 @@ fn normalize_groups<F: Fma, const G: usize>(fma: F, x: &mut [f32], n: usize) {
 #[inline(always)]
 fn normalize_rows<F: Fma, const G: usize>(fma: F, x: &mut [f32], n: usize) {
     let rows: [&[f32]; G] = core::array::from_fn(|c| &x[c * n..(c + 1) * n]);
-    let sums = fma.row_sums(&rows, n, None);
+    let pass = RowPass {
+        rows: &rows,
+        n,
+        means: None,
+    };
+    let sums = fma.row_sums(pass);
     let moments = sums.map(|sum| Moments::of(sum, n));
     let means = moments.map(|m| m.mean());
-    let deviations = fma.row_sums(&rows, n, Some(&means));
+    let deviations = fma.row_sums(RowPass {
+        means: Some(&means),
+        ..pass
+    });
     for ((row, m), d) in x.chunks_exact_mut(n).zip(&moments).zip(&deviations) {
         let normalizer = m.normalizer(d);
         for v in row.iter_mut() {
@@ -209,15 +217,22 @@ fn normalize_rows<F: Fma, const G: usize>(fma: F, x: &mut [f32], n: usize) {
     }
 }
 
-/// Each row's [`StatSum`] over its first `n` values in order: of the values, or with `means`
-/// of their [`Moments::squared_deviation`]s from the row's mean (the two passes of instance
-/// norm).
+/// One of instance norm's two passes over `G` rows side by side.
+#[derive(Clone, Copy)]
+pub struct RowPass<'a, const G: usize> {
+    /// The rows.
+    pub rows: &'a [&'a [f32]; G],
+    /// Values summed of each row (its first).
+    pub n: usize,
+    /// `None`: the values are summed (first pass); each row's mean: their
+    /// [`Moments::squared_deviation`]s from it (second pass).
+    pub means: Option<&'a [f32; G]>,
+}
+
+/// Each row's [`StatSum`] over its first `n` values in order, for one [`RowPass`].
 #[inline(always)]
-pub fn row_sums<const G: usize>(
-    rows: &[&[f32]; G],
-    n: usize,
-    means: Option<&[f32; G]>,
-) -> [StatSum; G] {
+pub fn row_sums<const G: usize>(pass: RowPass<'_, G>) -> [StatSum; G] {
+    let RowPass { rows, n, means } = pass;
     let mut sums = [StatSum::default(); G];
     for i in 0..n {
         for (c, (sum, row)) in sums.iter_mut().zip(rows).enumerate() {
@@ -241,19 +256,15 @@ pub fn row_sums<const G: usize>(
 #[cfg(all(target_arch = "x86_64", not(feature = "f32-statistics")))]
 #[inline(always)]
 #[allow(unsafe_code)]
-pub fn row_sums_avx2(
-    avx2: super::dispatch::X86Fma,
-    rows: &[&[f32]; 16],
-    n: usize,
-    means: Option<&[f32; 16]>,
-) -> [StatSum; 16] {
+pub fn row_sums_avx2(avx2: super::dispatch::X86Fma, pass: RowPass<'_, 16>) -> [StatSum; 16] {
     use core::arch::x86_64::{
         __m256, __m256d, _mm256_add_pd, _mm256_castps256_ps128, _mm256_cvtps_pd,
         _mm256_extractf128_ps, _mm256_loadu_ps, _mm256_mul_ps, _mm256_setzero_pd, _mm256_storeu_pd,
         _mm256_sub_ps,
     };
+    let RowPass { rows, n, means } = pass;
     if rows.iter().any(|r| r.len() < n) {
-        return row_sums(rows, n, means);
+        return row_sums(pass);
     }
     let blocks = n / 8;
     let mut sums = [0.0f64; 16];
@@ -293,7 +304,11 @@ pub fn row_sums_avx2(
     }
     let mut sums = sums.map(StatSum::of_f64);
     let tail: [&[f32]; 16] = core::array::from_fn(|c| &rows[c][8 * blocks..n]);
-    let rest = row_sums(&tail, n - 8 * blocks, means);
+    let rest = row_sums(RowPass {
+        rows: &tail,
+        n: n - 8 * blocks,
+        means,
+    });
     for (sum, r) in sums.iter_mut().zip(rest) {
         sum.sum += r.sum;
     }
@@ -419,8 +434,12 @@ mod tests {
             let rows: [&[f32]; 16] = core::array::from_fn(|c| &values[c][..n]);
             let means: [f32; 16] = core::array::from_fn(|_| next());
             for m in [None, Some(&means)] {
-                let portable = row_sums(&rows, n, m);
-                let vector = row_sums_avx2(avx2, &rows, n, m);
+                let pass = RowPass {
+                    rows: &rows,
+                    n,
+                    means: m,
+                };
+                let (portable, vector) = (row_sums(pass), row_sums_avx2(avx2, pass));
                 for (p, v) in portable.iter().zip(&vector) {
                     assert_eq!(p.sum.to_bits(), v.sum.to_bits(), "n = {n}");
                 }
