@@ -232,9 +232,19 @@ pub struct RowPass<'a, const G: usize> {
 /// Each row's [`StatSum`] over its first `n` values in order, for one [`RowPass`].
 #[inline(always)]
 pub fn row_sums<const G: usize>(pass: RowPass<'_, G>) -> [StatSum; G] {
+    continued_row_sums([StatSum::default(); G], pass, 0)
+}
+
+/// `sums` (each row's over its values before point `first`) continued over points
+/// `first..n`, in order.
+#[inline(always)]
+fn continued_row_sums<const G: usize>(
+    mut sums: [StatSum; G],
+    pass: RowPass<'_, G>,
+    first: usize,
+) -> [StatSum; G] {
     let RowPass { rows, n, means } = pass;
-    let mut sums = [StatSum::default(); G];
-    for i in 0..n {
+    for i in first..n {
         for (c, (sum, row)) in sums.iter_mut().zip(rows).enumerate() {
             let x = row[i];
             sum.add(match means {
@@ -251,8 +261,8 @@ pub fn row_sums<const G: usize>(pass: RowPass<'_, G>) -> [StatSum; G] {
 /// vectors; their squared deviations are taken in f32 as [`Moments::squared_deviation`], and
 /// each half is widened to f64 and added to four vectors of running sums, point after point
 /// (each lane's sum adds its row's values in order, as [`StatSum::add`]). The strided scalar
-/// loads of [`row_sums`] cost about three instructions a value. The last `n % 8` points, and
-/// rows shorter than `n`, take [`row_sums`]' path.
+/// loads of [`row_sums`] cost about three instructions a value. The last `n % 8` points continue
+/// the blocks' sums as [`row_sums`] does; rows shorter than `n` take [`row_sums`]' path.
 #[cfg(all(target_arch = "x86_64", not(feature = "f32-statistics")))]
 #[inline(always)]
 #[allow(unsafe_code)]
@@ -302,17 +312,7 @@ pub fn row_sums_avx2(avx2: super::dispatch::X86Fma, pass: RowPass<'_, 16>) -> [S
             _mm256_storeu_pd(sums.as_mut_ptr().add(4 * q), *a);
         }
     }
-    let mut sums = sums.map(StatSum::of_f64);
-    let tail: [&[f32]; 16] = core::array::from_fn(|c| &rows[c][8 * blocks..n]);
-    let rest = row_sums(RowPass {
-        rows: &tail,
-        n: n - 8 * blocks,
-        means,
-    });
-    for (sum, r) in sums.iter_mut().zip(rest) {
-        sum.sum += r.sum;
-    }
-    sums
+    continued_row_sums(sums.map(StatSum::of_f64), pass, 8 * blocks)
 }
 
 /// `max(x, 0)`.
@@ -445,6 +445,18 @@ mod tests {
                 }
             }
         }
+        // Points past the last block of 8 continue the blocks' sums (8 + 2^-50 rounds back to 8
+        // four times; the four small values summed first would not).
+        let row: [f32; 12] = core::array::from_fn(|i| if i < 8 { 1.0 } else { 2f32.powi(-50) });
+        let rows: [&[f32]; 16] = [&row; 16];
+        let pass = RowPass {
+            rows: &rows,
+            n: 12,
+            means: None,
+        };
+        let (portable, vector) = (row_sums(pass), row_sums_avx2(avx2, pass));
+        assert_eq!(portable[0].sum, 8.0);
+        assert_eq!(vector[0].sum.to_bits(), portable[0].sum.to_bits());
     }
 
     #[test]
