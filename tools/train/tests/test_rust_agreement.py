@@ -43,8 +43,11 @@ def assert_agree(report: dict, min_agreement: float) -> None:
         assert diff <= RELATIVE_TOLERANCE * scale, f"stage {stage}: |rust - torch| = {diff} (scale {scale})"
     # The early stop compares ||u - u_prev|| with 1e-6, where f32 rounding of the potentials (~1e-7 per entry over
     # hundreds of entries) is of the same size: features ~1e-5 apart (EdgeConv and attention sum in other orders
-    # here) can stop one iteration apart. Against the reference fixtures the counts are equal (conformance.rs).
-    assert abs(report["sinkhorn_iterations"] - report["reference_iterations"]) <= 1, report
+    # here, and PyTorch's own order depends on the CPU's vector width) can stop a few iterations apart while the
+    # plans agree (the "scores" stage above: on an AVX-512 CPU with torch 2.15 the shipped model's case stopped
+    # at 13 against 15 with scores 6e-8 apart and every match equal). Against the reference fixtures the counts
+    # are equal (conformance.rs).
+    assert abs(report["sinkhorn_iterations"] - report["reference_iterations"]) <= 3, report
     assert report["match_agreement"] >= min_agreement, report
 
 
