@@ -563,6 +563,9 @@ const QUERY_BLOCK: usize = blocking::ATTENTION_QUERIES;
 const SOURCE_BLOCK: usize = 64;
 /// Width of the inner register tiles (`nn::blocking`).
 const LANES: usize = blocking::ATTENTION_LANES;
+/// Width of the inner register tiles where the CPU has 32 vector registers of 16 lanes
+/// ([`Fma::WIDE_REGISTERS`]): 8 x 16 score accumulators.
+const WIDE_LANES: usize = 16;
 
 /// Scaled dot-product attention (eq. 6-7) of the queries `q` (channel-major `d x nx`,
 /// replaced by the messages) over the keys `k` (channel-major `d x ns`) and values `v`
@@ -586,16 +589,28 @@ struct Attend<'a> {
 }
 
 impl Kernel<()> for Attend<'_> {
-    /// Plain f32 arithmetic (no fused operations): the same bits compiled for any CPU.
+    /// Plain f32 arithmetic (no fused operations): the same bits compiled for any CPU, in
+    /// register tiles as wide as its vectors ([`WIDE_LANES`] with 32 wide registers).
     #[inline(always)]
-    fn run<F: Fma>(self, _fma: F) {
-        attend_vectorised(self.shape, self.q, self.k, self.v);
+    fn run<F: Fma>(self, fma: F) {
+        if F::WIDE_REGISTERS {
+            attend_vectorised::<F, WIDE_LANES>(fma, self.shape, self.q, self.k, self.v);
+        } else {
+            attend_vectorised::<F, LANES>(fma, self.shape, self.q, self.k, self.v);
+        }
     }
 }
 
-/// [`attend`], compiled into the caller (for the widest vectors the CPU has).
+/// [`attend`] in register tiles of `L` lanes, compiled into the caller (for the widest
+/// vectors the CPU has).
 #[inline(always)]
-fn attend_vectorised(shape: &AttentionShape, q: &mut [f32], k: &[f32], v: &[f32]) {
+fn attend_vectorised<F: Fma, const L: usize>(
+    fma: F,
+    shape: &AttentionShape,
+    q: &mut [f32],
+    k: &[f32],
+    v: &[f32],
+) {
     let mut blocks = QueryBlocks {
         queries: [[0.0; QUERY_BLOCK]; MAX_FEATURE_DIM],
         acc: [[0.0; MAX_FEATURE_DIM]; QUERY_BLOCK],
@@ -605,7 +620,7 @@ fn attend_vectorised(shape: &AttentionShape, q: &mut [f32], k: &[f32], v: &[f32]
         let mut i0 = 0;
         while i0 < shape.nx {
             let live = QUERY_BLOCK.min(shape.nx - i0);
-            blocks.attend_head(shape, h, q, i0, live, k, v);
+            blocks.attend_head::<F, L>(fma, shape, h, q, i0, live, k, v);
             i0 += live;
         }
     }
@@ -625,8 +640,9 @@ impl QueryBlocks {
     /// source block after source block.
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
-    fn attend_head(
+    fn attend_head<F: Fma, const L: usize>(
         &mut self,
+        fma: F,
         shape: &AttentionShape,
         h: usize,
         q: &mut [f32],
@@ -652,7 +668,8 @@ impl QueryBlocks {
         let mut j0 = 0;
         while j0 < shape.ns {
             let len = SOURCE_BLOCK.min(shape.ns - j0);
-            score_tiles(
+            score_tiles::<F, L>(
+                fma,
                 shape,
                 h,
                 &self.queries,
@@ -678,7 +695,7 @@ impl QueryBlocks {
                 }
                 total[b] += lane_sum(s);
             }
-            message_tiles(shape, h, &self.scores, v, j0, len, &mut self.acc);
+            message_tiles::<F, L>(fma, shape, h, &self.scores, v, j0, len, &mut self.acc);
             j0 += len;
         }
         for e in 0..head_dim {
@@ -694,7 +711,8 @@ impl QueryBlocks {
 /// `h`, for the `len` sources from `j0`.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn score_tiles(
+fn score_tiles<F: Fma, const L: usize>(
+    fma: F,
     shape: &AttentionShape,
     h: usize,
     queries: &[[f32; QUERY_BLOCK]; MAX_FEATURE_DIM],
@@ -706,16 +724,16 @@ fn score_tiles(
 ) {
     let mut t0 = 0;
     while t0 < len {
-        let width = LANES.min(len - t0);
-        if width == LANES {
-            let tile = score_tile::<true>(shape, h, queries, k, j0 + t0, width);
+        let width = L.min(len - t0);
+        if width == L {
+            let tile = score_tile::<F, true, L>(fma, shape, h, queries, k, j0 + t0, width);
             for (b, row) in tile.iter().enumerate() {
-                if let Some(out) = scores[b][h][t0..].first_chunk_mut::<LANES>() {
+                if let Some(out) = scores[b][h][t0..].first_chunk_mut::<L>() {
                     *out = row.map(|x| x / sqrt_dim);
                 }
             }
         } else {
-            let tile = score_tile::<false>(shape, h, queries, k, j0 + t0, width);
+            let tile = score_tile::<F, false, L>(fma, shape, h, queries, k, j0 + t0, width);
             for (b, row) in tile.iter().enumerate() {
                 for (l, &x) in row[..width].iter().enumerate() {
                     scores[b][h][t0 + l] = x / sqrt_dim;
@@ -728,22 +746,21 @@ fn score_tiles(
 
 /// Dot products of the block's queries with `width` keys from `j`, head `h`.
 #[inline(always)]
-fn score_tile<const FULL: bool>(
+fn score_tile<F: Fma, const FULL: bool, const L: usize>(
+    fma: F,
     shape: &AttentionShape,
     h: usize,
     queries: &[[f32; QUERY_BLOCK]; MAX_FEATURE_DIM],
     k: &[f32],
     j: usize,
     width: usize,
-) -> [[f32; LANES]; QUERY_BLOCK] {
-    let mut tile = [[0.0f32; LANES]; QUERY_BLOCK];
+) -> [[f32; L]; QUERY_BLOCK] {
+    let mut tile = [[0.0f32; L]; QUERY_BLOCK];
     for e in 0..shape.head_dim {
         let c = h + shape.heads * e;
-        let key = lanes::<FULL>(k, c * shape.ns + j, width);
+        let key = lanes::<FULL, L>(k, c * shape.ns + j, width);
         for (row, &qb) in tile.iter_mut().zip(&queries[c]) {
-            for l in 0..LANES {
-                row[l] += qb * key[l];
-            }
+            fma.add_products(qb, &key, row);
         }
     }
     tile
@@ -751,8 +768,10 @@ fn score_tile<const FULL: bool>(
 
 /// `acc[b][h dims] += sum_t p[b][h][t] v_{j0 + t}[h dims]` over the `len` sources from
 /// `j0` (the block's sum first, then added to the running message).
+#[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn message_tiles(
+fn message_tiles<F: Fma, const L: usize>(
+    fma: F,
     shape: &AttentionShape,
     h: usize,
     p: &[[[f32; SOURCE_BLOCK]; MAX_HEADS]; QUERY_BLOCK],
@@ -764,19 +783,19 @@ fn message_tiles(
     let head_dim = shape.head_dim;
     let mut e0 = 0;
     while e0 < head_dim {
-        let width = LANES.min(head_dim - e0);
+        let width = L.min(head_dim - e0);
         let first = h * head_dim + e0;
-        if width == LANES {
-            let tile = message_tile::<true>(shape, h, p, v, j0, len, first, width);
+        if width == L {
+            let tile = message_tile::<F, true, L>(fma, shape, h, p, v, j0, len, first, width);
             for (a, row) in acc.iter_mut().zip(&tile) {
-                if let Some(lanes) = a[first..].first_chunk_mut::<LANES>() {
+                if let Some(lanes) = a[first..].first_chunk_mut::<L>() {
                     for (x, &y) in lanes.iter_mut().zip(row) {
                         *x += y;
                     }
                 }
             }
         } else {
-            let tile = message_tile::<false>(shape, h, p, v, j0, len, first, width);
+            let tile = message_tile::<F, false, L>(fma, shape, h, p, v, j0, len, first, width);
             for (a, row) in acc.iter_mut().zip(&tile) {
                 for (x, &y) in a[first..first + width].iter_mut().zip(row) {
                     *x += y;
@@ -790,7 +809,8 @@ fn message_tiles(
 /// The block's weighted sum of `width` value channels from `first` (head-major order).
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn message_tile<const FULL: bool>(
+fn message_tile<F: Fma, const FULL: bool, const L: usize>(
+    fma: F,
     shape: &AttentionShape,
     h: usize,
     p: &[[[f32; SOURCE_BLOCK]; MAX_HEADS]; QUERY_BLOCK],
@@ -799,29 +819,26 @@ fn message_tile<const FULL: bool>(
     len: usize,
     first: usize,
     width: usize,
-) -> [[f32; LANES]; QUERY_BLOCK] {
+) -> [[f32; L]; QUERY_BLOCK] {
     let d = shape.heads * shape.head_dim;
-    let mut tile = [[0.0f32; LANES]; QUERY_BLOCK];
+    let mut tile = [[0.0f32; L]; QUERY_BLOCK];
     for t in 0..len {
-        let value = lanes::<FULL>(v, (j0 + t) * d + first, width);
+        let value = lanes::<FULL, L>(v, (j0 + t) * d + first, width);
         for (row, pb) in tile.iter_mut().zip(p) {
-            let w = pb[h][t];
-            for l in 0..LANES {
-                row[l] += w * value[l];
-            }
+            fma.add_products(pb[h][t], &value, row);
         }
     }
     tile
 }
 
-/// `x[at..at + width]` zero-padded to [`LANES`] values (`width == LANES` when `FULL`);
+/// `x[at..at + width]` zero-padded to `L` values (`width == L` when `FULL`);
 /// zeros past the end of `x`.
 #[inline(always)]
-fn lanes<const FULL: bool>(x: &[f32], at: usize, width: usize) -> [f32; LANES] {
+fn lanes<const FULL: bool, const L: usize>(x: &[f32], at: usize, width: usize) -> [f32; L] {
     let src = x.get(at..).unwrap_or(&[]);
-    let mut out = [0.0f32; LANES];
+    let mut out = [0.0f32; L];
     if FULL {
-        if let Some(values) = src.first_chunk::<LANES>() {
+        if let Some(values) = src.first_chunk::<L>() {
             out = *values;
         }
     } else {

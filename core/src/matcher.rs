@@ -695,29 +695,32 @@ mod tests {
         });
     }
 
-    /// The kernels chosen at run time (the FMA instruction and 256-bit vectors where the
-    /// CPU has them) and the portable ones give bit-identical outputs.
+    /// The kernels chosen at run time (AVX-512 VNNI, or the FMA instruction and 256-bit
+    /// vectors, where the CPU has them), every narrower set the CPU has and the portable
+    /// ones give bit-identical outputs.
     #[test]
     fn portable_kernels_give_identical_matches() {
+        use crate::nn::dispatch::{limit_kernels, KernelSet};
         with_model(|model| {
             let (q, db) = (points(CAP, 3), points(CAP, 4));
             let mut m = WORKSPACE.lock().expect("lock");
-            crate::nn::dispatch::set_portable_only(false);
-            let detected = m
-                .match_pair(model, &q, &db)
-                .expect("runs")
-                .as_slice()
-                .to_vec();
-            crate::nn::dispatch::set_portable_only(true);
-            let portable = m.match_pair(model, &q, &db).map(|s| s.as_slice().to_vec());
-            crate::nn::dispatch::set_portable_only(false);
             let bits = |set: &[Match]| -> std::vec::Vec<(u16, u16, u32, u32)> {
                 set.iter()
                     .map(|m| (m.i2d, m.i3d, m.sinkhorn.to_bits(), m.probability.to_bits()))
                     .collect()
             };
+            let mut runs = std::vec::Vec::new();
+            for set in [KernelSet::Avx512, KernelSet::Avx2, KernelSet::Portable] {
+                limit_kernels(set);
+                let matches = m.match_pair(model, &q, &db).map(|s| bits(s.as_slice()));
+                runs.push(matches);
+            }
+            limit_kernels(KernelSet::Avx512);
+            let detected = runs[0].clone().expect("runs");
             assert!(!detected.is_empty());
-            assert_eq!(bits(&detected), bits(&portable.expect("runs")));
+            for run in &runs[1..] {
+                assert_eq!(run.as_ref().expect("runs"), &detected);
+            }
         });
     }
 

@@ -391,7 +391,7 @@ pub fn parse_images_txt(text: &str) -> Result<BTreeMap<ImageId, Image>, FormatEr
 
 fn parse_keypoints_line(text: &str, line: usize) -> Result<Vec<Keypoint>, FormatError> {
     let tokens: Vec<&str> = text.split_whitespace().collect();
-    if tokens.len() % 3 != 0 {
+    if !tokens.len().is_multiple_of(3) {
         return Err(FormatError::Syntax {
             line,
             message: format!(
@@ -438,7 +438,7 @@ pub fn parse_points_txt(text: &str) -> Result<BTreeMap<PointId, Point3d>, Format
         }
         field::<f64>(&mut fields, line, "the point error")?;
         let rest: Vec<&str> = fields.collect();
-        if rest.len() % 2 != 0 {
+        if !rest.len().is_multiple_of(2) {
             return Err(FormatError::Syntax {
                 line,
                 message: "track elements come in (IMAGE_ID, POINT2D_IDX) pairs".into(),

@@ -325,7 +325,7 @@ pub fn encode_keypoints<'o>(keypoints: &[[f32; 2]], out: &'o mut [u8]) -> Option
 /// Reads keypoint pixels from the wire layout into `out`; the number read, or `None`
 /// when the bytes are not whole keypoints or more than `out` holds.
 pub fn decode_keypoints(bytes: &[u8], out: &mut [[f32; 2]]) -> Option<usize> {
-    if bytes.len() % KEYPOINT_BYTES != 0 || bytes.len() / KEYPOINT_BYTES > out.len() {
+    if !bytes.len().is_multiple_of(KEYPOINT_BYTES) || bytes.len() / KEYPOINT_BYTES > out.len() {
         return None;
     }
     let f32_at = |c: &[u8], at: usize| {

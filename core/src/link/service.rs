@@ -149,7 +149,7 @@ impl<'a, const N: usize, S: PlanScalar, P: OutputPin> Service<'a, N, S, P> {
 /// Decodes a request's keypoint bytes into `out`: how many, or the refusal of bytes that
 /// are not whole keypoints or of more keypoints than `out` holds.
 fn decode_request_keypoints(bytes: &[u8], out: &mut [[f32; 2]]) -> Result<usize, LinkError> {
-    if bytes.len() % KEYPOINT_BYTES != 0 {
+    if !bytes.len().is_multiple_of(KEYPOINT_BYTES) {
         return Err(LinkError::KeypointBytes {
             len: narrow(bytes.len()),
         });

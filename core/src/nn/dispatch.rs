@@ -1,11 +1,13 @@
 //! Kernel selection at run time: one build runs on every CPU of its architecture and uses
-//! the fused multiply-add instruction and 256-bit vectors where the CPU has them.
+//! the fused multiply-add instruction and the widest vectors the CPU has.
 //!
 //! The kernels that round with fused multiply-adds (the linear layer, instance norm) are
-//! generic over [`Fma`] and entered through [`with_fma`], which hands them [`X86Fma`] inside
-//! a function compiled for AVX2, FMA and F16C when the CPU has them (checked once with `cpuid`
-//! and `xgetbv`, which work in `no_std`, and cached), and [`Portable`] otherwise. A fused
-//! multiply-add is exactly specified, so both give the same bits (see [`super::fma`]).
+//! generic over [`Fma`] and entered through [`with_fma`], which hands them an [`X86Fma`]
+//! inside a function compiled for AVX2, FMA and F16C (and, on a CPU with AVX-512 VNNI, one
+//! compiled for AVX-512 too, whose token also picks the 512-bit integer kernel) when the CPU
+//! has them (checked once with `cpuid` and `xgetbv`, which work in `no_std`, and cached), and
+//! [`Portable`] otherwise. A fused multiply-add is exactly specified and the integer sums
+//! are exact, so every variant gives the same bits (see [`super::fma`]).
 
 use core::sync::atomic::{AtomicU8, Ordering};
 
@@ -18,6 +20,11 @@ use super::transpose;
 /// rounding (the f32 kernels) and the exact int16 pair multiply-add (the integer kernel);
 /// also its exact f16 <-> f32 conversions (Sinkhorn's f16 cost rows).
 pub trait Fma: Copy {
+    /// Whether the CPU has 32 vector registers of 16 f32 lanes (AVX-512): the f32 linear
+    /// kernel then accumulates two register blocks side by side and attention's register
+    /// tiles are 16 lanes wide; the same sums either way.
+    const WIDE_REGISTERS: bool = false;
+
     /// `a * b + c`, rounded once.
     fn mul_add(self, a: f32, b: f32, c: f32) -> f32;
 
@@ -29,11 +36,23 @@ pub trait Fma: Copy {
     #[inline(always)]
     fn mul_add_lanes<const L: usize>(self, w: f32, x: &[f32; L], acc: &mut [f32; L]) {
         #[cfg(all(target_arch = "aarch64", target_feature = "neon"))]
-        if L % 4 == 0 {
+        if L.is_multiple_of(4) {
             return mul_add_lanes_neon(w, x, acc);
         }
         for (a, &xt) in acc.iter_mut().zip(x) {
             *a = self.mul_add(w, xt, *a);
+        }
+    }
+
+    /// `acc[t] = acc[t] + w * x[t]` in every lane, the product and the sum each rounded
+    /// (attention's register tiles, unfused as the reference computes them). The default is
+    /// a loop the compiler vectorises; AVX-512 multiplies and adds 16 lanes explicitly (the
+    /// compiler's own choice there gathers across tiles). Exact IEEE operations, so every
+    /// path gives the same bits.
+    #[inline(always)]
+    fn add_products<const L: usize>(self, w: f32, x: &[f32; L], acc: &mut [f32; L]) {
+        for (a, &xt) in acc.iter_mut().zip(x) {
+            *a += w * xt;
         }
     }
 
@@ -185,41 +204,93 @@ impl Fma for Portable {
     }
 }
 
-/// The x86-64 FMA instruction. A value exists only on a CPU with AVX2, FMA and F16C (it is made
-/// by [`X86Fma::detect`]), which makes its use sound.
+/// The x86-64 FMA instruction and 256-bit vectors; with `AVX512` also the AVX-512 VNNI
+/// integer kernel (and the compiler's 512-bit vectors around it). A value exists only on a
+/// CPU with AVX2, FMA and F16C, and with `AVX512` only on one that also has AVX-512 F, BW, VL
+/// and VNNI (it is made by [`X86Fma::detect`] and [`with_fma`]), which makes its use sound.
 #[cfg(target_arch = "x86_64")]
 #[derive(Clone, Copy)]
-pub struct X86Fma(());
+pub struct X86Fma<const AVX512: bool = false>(());
 
-/// What [`with_fma`] uses: 0 not checked yet, 1 [`Portable`], 2 the instruction.
-static STATE: AtomicU8 = AtomicU8::new(0);
+/// The kernels [`with_fma`] may pick, narrowest first.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+#[repr(u8)]
+pub enum KernelSet {
+    /// [`Portable`] (NEON or the Cortex-M DSP and FPU instructions where the build enables them).
+    Portable = 1,
+    /// x86-64 AVX2, FMA and F16C.
+    Avx2 = 2,
+    /// x86-64 AVX-512 F, BW, VL and VNNI besides.
+    Avx512 = 3,
+}
 
-/// With `true`, every later kernel call uses [`Portable`] even where the CPU has the FMA
-/// instruction (to check the fallback on such a CPU: the results are the same bits); with
-/// `false`, the CPU is checked again.
-pub fn set_portable_only(portable: bool) {
-    STATE.store(if portable { 1 } else { 0 }, Ordering::Relaxed);
+/// What this CPU has: 0 not checked yet, else a [`KernelSet`].
+#[cfg(target_arch = "x86_64")]
+static DETECTED: AtomicU8 = AtomicU8::new(0);
+/// The widest [`KernelSet`] allowed ([`limit_kernels`]).
+static LIMIT: AtomicU8 = AtomicU8::new(KernelSet::Avx512 as u8);
+
+/// Every later kernel call uses at most `widest`, even where the CPU has more (to check the
+/// narrower variants on such a CPU: the results are the same bits); [`KernelSet::Avx512`]
+/// lifts the limit.
+pub fn limit_kernels(widest: KernelSet) {
+    LIMIT.store(widest as u8, Ordering::Relaxed);
+}
+
+/// The kernels of this CPU within the limit.
+#[cfg(target_arch = "x86_64")]
+fn kernel_set() -> u8 {
+    let detected = match DETECTED.load(Ordering::Relaxed) {
+        0 => {
+            let detected = cpu_kernel_set() as u8;
+            DETECTED.store(detected, Ordering::Relaxed);
+            detected
+        }
+        known => known,
+    };
+    detected.min(LIMIT.load(Ordering::Relaxed))
+}
+
+/// The widest [`KernelSet`] this CPU and its OS support.
+#[cfg(target_arch = "x86_64")]
+fn cpu_kernel_set() -> KernelSet {
+    if !cpu_has_avx2_fma() {
+        KernelSet::Portable
+    } else if cpu_has_avx512_vnni() {
+        KernelSet::Avx512
+    } else {
+        KernelSet::Avx2
+    }
 }
 
 #[cfg(target_arch = "x86_64")]
 impl X86Fma {
     /// The token if this CPU has AVX2, FMA and F16C and the OS saves the AVX registers (and
-    /// [`set_portable_only`] is off).
+    /// [`limit_kernels`] allows them).
     pub fn detect() -> Option<Self> {
-        let state = match STATE.load(Ordering::Relaxed) {
-            0 => {
-                let state = if cpu_has_avx2_fma() { 2 } else { 1 };
-                STATE.store(state, Ordering::Relaxed);
-                state
-            }
-            known => known,
-        };
-        (state == 2).then_some(X86Fma(()))
+        (kernel_set() >= KernelSet::Avx2 as u8).then_some(X86Fma(()))
     }
 }
 
 #[cfg(target_arch = "x86_64")]
-impl Fma for X86Fma {
+impl<const AVX512: bool> X86Fma<AVX512> {
+    /// The AVX2 token (every AVX-512 CPU has AVX2).
+    #[inline(always)]
+    pub fn avx2(self) -> X86Fma {
+        X86Fma(())
+    }
+
+    /// The AVX-512 token if this one is.
+    #[inline(always)]
+    pub fn avx512(self) -> Option<X86Fma<true>> {
+        AVX512.then_some(X86Fma(()))
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+impl<const AVX512: bool> Fma for X86Fma<AVX512> {
+    const WIDE_REGISTERS: bool = AVX512;
+
     #[inline(always)]
     #[allow(unsafe_code)]
     fn mul_add(self, a: f32, b: f32, c: f32) -> f32 {
@@ -230,18 +301,42 @@ impl Fma for X86Fma {
     }
 
     #[inline(always)]
+    #[allow(unsafe_code)]
+    fn add_products<const L: usize>(self, w: f32, x: &[f32; L], acc: &mut [f32; L]) {
+        use core::arch::x86_64::{
+            _mm512_add_ps, _mm512_loadu_ps, _mm512_mul_ps, _mm512_set1_ps, _mm512_storeu_ps,
+        };
+        if let (Some(_avx512), true) = (self.avx512(), L == 16) {
+            // SAFETY: an `X86Fma<true>` exists only on a CPU with AVX-512 F; `x` and `acc`
+            // hold 16 f32 (64 bytes) each, read and written unaligned.
+            unsafe {
+                let product = _mm512_mul_ps(_mm512_set1_ps(w), _mm512_loadu_ps(x.as_ptr()));
+                let sum = _mm512_add_ps(_mm512_loadu_ps(acc.as_ptr()), product);
+                _mm512_storeu_ps(acc.as_mut_ptr(), sum);
+            }
+            return;
+        }
+        for (a, &xt) in acc.iter_mut().zip(x) {
+            *a += w * xt;
+        }
+    }
+
+    #[inline(always)]
     fn scaled_group_sums(self, w: &[WeightPairs], tile: QuantizedTile<'_>) -> OutputBlock {
-        integer::scaled_group_sums_avx2(self, w, tile)
+        if let Some(avx512) = self.avx512() {
+            return integer::scaled_group_sums_avx512(avx512, w, tile);
+        }
+        integer::scaled_group_sums_avx2(self.avx2(), w, tile)
     }
 
     #[inline(always)]
     fn interleave_pairs(self, rows: [&[u8]; integer::ROWS], out: &mut [WeightPairs]) {
-        integer::interleave_pairs_sse41(self, rows, out);
+        integer::interleave_pairs_sse41(self.avx2(), rows, out);
     }
 
     #[inline(always)]
     fn point_major<const G: usize>(self, rows: &[f32], n: usize, out: &mut [f32]) {
-        transpose::point_major_avx2::<G>(self, rows, n, out);
+        transpose::point_major_avx2::<G>(self.avx2(), rows, n, out);
     }
 
     #[inline(always)]
@@ -253,7 +348,7 @@ impl Fma for X86Fma {
                 .means
                 .and_then(|m| <&[f32; 16]>::try_from(m.as_slice()).ok());
             let n = pass.n;
-            let sums = norm::row_sums_avx2(self, RowPass { rows, n, means });
+            let sums = norm::row_sums_avx2(self.avx2(), RowPass { rows, n, means });
             return core::array::from_fn(|c| sums[c]);
         }
         norm::row_sums(pass)
@@ -331,15 +426,38 @@ fn cpu_has_avx2_fma() -> bool {
     xcr0 & XMM_YMM_STATE == XMM_YMM_STATE && leaf7.ebx & AVX2 != 0
 }
 
+/// `cpuid` leaf 7: AVX-512 F, BW, VL and VNNI; `xgetbv`: the OS saves the opmask and all 512
+/// bits of the 32 vector registers (Intel SDM vol. 1, 15.2 "Detection of AVX-512 foundation
+/// instructions"). Called after [`cpu_has_avx2_fma`] found leaf 7 and `xgetbv`.
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code, unused_unsafe)]
+fn cpu_has_avx512_vnni() -> bool {
+    use core::arch::x86_64::{__cpuid_count, _xgetbv};
+    const AVX512F: u32 = 1 << 16;
+    const AVX512BW: u32 = 1 << 30;
+    const AVX512VL: u32 = 1 << 31;
+    const AVX512_VNNI: u32 = 1 << 11;
+    const OPMASK_ZMM_STATE: u64 = 0b1110_0110;
+    // SAFETY: `cpu_has_avx2_fma` found OSXSAVE (so `xgetbv`) and leaf 7.
+    let (xcr0, leaf7) = unsafe { (_xgetbv(0), __cpuid_count(7, 0)) };
+    let ebx = AVX512F | AVX512BW | AVX512VL;
+    xcr0 & OPMASK_ZMM_STATE == OPMASK_ZMM_STATE
+        && leaf7.ebx & ebx == ebx
+        && leaf7.ecx & AVX512_VNNI != 0
+}
+
 /// Runs `kernel` with the best [`Fma`] of this CPU: on x86-64 with AVX2, FMA and F16C inside a
 /// function compiled for them (so the kernel, inlined there, uses 256-bit FMA
-/// instructions), else with [`Portable`]. `kernel` must be `#[inline(always)]`-able code
+/// instructions), with AVX-512 VNNI besides inside one compiled for those too, else with
+/// [`Portable`]. `kernel` must be `#[inline(always)]`-able code
 /// (a closure calling the generic kernel).
 #[inline(always)]
 pub fn with_fma<R>(kernel: impl Kernel<R>) -> R {
     #[cfg(target_arch = "x86_64")]
-    if let Some(fma) = X86Fma::detect() {
-        return run_avx2_fma(fma, kernel);
+    match kernel_set() {
+        3 => return run_avx512(X86Fma(()), kernel),
+        2 => return run_avx2_fma(X86Fma(()), kernel),
+        _ => {}
     }
     run_portable(kernel)
 }
@@ -368,6 +486,19 @@ fn run_avx2_fma<R>(fma: X86Fma, kernel: impl Kernel<R>) -> R {
     }
     // SAFETY: `fma` proves the CPU has AVX2, FMA and F16C.
     unsafe { avx2_fma(fma, kernel) }
+}
+
+/// Runs `kernel` compiled for AVX-512 (F, BW, VL, VNNI) besides AVX2, FMA and F16C.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+#[allow(unsafe_code)]
+fn run_avx512<R>(fma: X86Fma<true>, kernel: impl Kernel<R>) -> R {
+    #[target_feature(enable = "avx2,fma,f16c,avx512f,avx512bw,avx512vl,avx512vnni")]
+    unsafe fn avx512<R>(fma: X86Fma<true>, kernel: impl Kernel<R>) -> R {
+        kernel.run(fma)
+    }
+    // SAFETY: `fma` proves the CPU has all of them.
+    unsafe { avx512(fma, kernel) }
 }
 
 #[cfg(test)]

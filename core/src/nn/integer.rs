@@ -610,6 +610,64 @@ pub fn scaled_group_sums_avx2(
     y
 }
 
+/// [`scaled_group_sums`] with AVX-512 VNNI: `vpdpwssd` (`_mm512_dpwssd_epi32`: sixteen pair
+/// products added to 32-bit lanes per instruction, the whole tile, with no separate add)
+/// for each group's sums, even and odd pairs in two sets of accumulators (eight chains in
+/// flight; integer sums do not depend on their order), then converted, scaled and added to
+/// the outputs in registers as [`scaled_group_sums_avx2`] does.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+#[allow(unsafe_code)]
+pub fn scaled_group_sums_avx512(
+    _avx512: super::dispatch::X86Fma<true>,
+    w: &[WeightPairs],
+    quantized: QuantizedTile<'_>,
+) -> OutputBlock {
+    use core::arch::x86_64::{
+        __m512i, _mm512_add_epi32, _mm512_add_ps, _mm512_cvtepi32_ps, _mm512_dpwssd_epi32,
+        _mm512_loadu_ps, _mm512_loadu_si512, _mm512_mul_ps, _mm512_set1_epi32, _mm512_setzero_ps,
+        _mm512_setzero_si512, _mm512_storeu_ps,
+    };
+    const { assert!(POINTS == 16 && TILE == 16) };
+    let mut y = [[0.0f32; TILE]; ROWS];
+    // SAFETY: an `X86Fma<true>` exists only on a CPU with AVX-512 F, BW, VL and VNNI (see
+    // `dispatch`). Each integer load reads one `[Pair; 16]` (64 bytes), each float load one
+    // `[f32; 16]` and each store writes one `[f32; 16]`: all in bounds; `loadu`/`storeu` need
+    // no alignment.
+    unsafe {
+        let mut out = [_mm512_setzero_ps(); ROWS];
+        for group in quantized.groups {
+            let pairs = w.get(group.range()).unwrap_or(&[]);
+            let tile = quantized.pairs.get(group.range()).unwrap_or(&[]);
+            let mut acc = [[_mm512_setzero_si512(); ROWS]; 2];
+            let add_pair = |acc: &mut [__m512i; ROWS], wk: &WeightPairs, xk: &TilePairs| {
+                let points = _mm512_loadu_si512(xk.as_ptr().cast());
+                for (a, wr) in acc.iter_mut().zip(wk) {
+                    *a = _mm512_dpwssd_epi32(*a, _mm512_set1_epi32(pair_bits(*wr)), points);
+                }
+            };
+            let (w2, x2) = (pairs.chunks_exact(2), tile.chunks_exact(2));
+            let (w_last, x_last) = (w2.remainder(), x2.remainder());
+            for (wk, xk) in w2.zip(x2) {
+                add_pair(&mut acc[0], &wk[0], &xk[0]);
+                add_pair(&mut acc[1], &wk[1], &xk[1]);
+            }
+            for (wk, xk) in w_last.iter().zip(x_last) {
+                add_pair(&mut acc[0], wk, xk);
+            }
+            let scale = _mm512_loadu_ps(group.scales.as_ptr());
+            for ((o, &even), &odd) in out.iter_mut().zip(&acc[0]).zip(&acc[1]) {
+                let sums = _mm512_cvtepi32_ps(_mm512_add_epi32(even, odd));
+                *o = _mm512_add_ps(*o, _mm512_mul_ps(sums, scale));
+            }
+        }
+        for (row, o) in y.iter_mut().zip(&out) {
+            _mm512_storeu_ps(row.as_mut_ptr(), *o);
+        }
+    }
+    y
+}
+
 /// [`block_sums`] with AArch64 NEON: `smlal`/`smlal2` multiply four points' pairs by the
 /// row's pair (each lane one product, even lanes channel `k`, odd lanes `k + 1`), and one
 /// `addp` at the end adds each point's two lanes. A block is a whole tile (`p` is 0), done
@@ -673,7 +731,7 @@ fn multiply_accumulate(acc: i32, w: Pair, x: Pair) -> i32 {
 
 #[cfg(test)]
 mod tests {
-    use super::super::dispatch::Portable;
+    use super::super::dispatch::{limit_kernels, KernelSet, Portable};
     use super::super::linear::{linear, linear_with, store, SMALL_SET};
     use super::*;
     use crate::weights::{tests_support, Precision};
@@ -776,7 +834,8 @@ mod tests {
     }
 
     /// 9 rows (a partial row block) x 37 inputs (an odd count) on 45 points (a partial tile),
-    /// one point all zero: the dispatched kernel (AVX2 where the CPU has it), the portable one
+    /// one point all zero: the dispatched kernels (AVX2 and AVX-512 VNNI where the CPU has
+    /// them), the portable one
     /// (NEON on AArch64) and the definition agree bit for bit, and the result is within the
     /// activations' rounding of the f32 product.
     #[test]
@@ -789,15 +848,18 @@ mod tests {
             x[k * N + 7] = 0.0;
         }
         let input = Input::one(&x, COLS, N);
-        let mut dispatched = [0.0f32; ROWS_ * N];
-        linear(&linear_layer, &input, 0..ROWS_, |r, i0, v| {
-            store(&mut dispatched, N, r, i0, v)
-        });
         let mut portable = [0.0f32; ROWS_ * N];
         linear_with(Portable, &linear_layer, &input, 0..ROWS_, |r, i0, v| {
             store(&mut portable, N, r, i0, v)
         });
-        assert_eq!(dispatched.map(f32::to_bits), portable.map(f32::to_bits));
+        let mut dispatched = [0.0f32; ROWS_ * N];
+        for set in [KernelSet::Avx2, KernelSet::Avx512] {
+            limit_kernels(set);
+            linear(&linear_layer, &input, 0..ROWS_, |r, i0, v| {
+                store(&mut dispatched, N, r, i0, v)
+            });
+            assert_eq!(dispatched.map(f32::to_bits), portable.map(f32::to_bits));
+        }
         for r in 0..ROWS_ {
             let scale = layer.scale(r);
             for i in 0..N {

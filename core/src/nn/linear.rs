@@ -359,9 +359,13 @@ fn linear_f32<F: Fma, W: WeightRows>(
                 let live = KERNEL_ROWS.min(count - r);
                 let weights = &panel[r / KERNEL_ROWS * k..(r / KERNEL_ROWS + 1) * k];
                 let mut i0 = t0;
-                let mut values = [0.0f32; COL_BLOCK];
                 while i0 < t1 {
-                    let len = COL_BLOCK.min(t1 - i0);
+                    let pair = F::WIDE_REGISTERS && !small_set && i0 + 2 * COL_BLOCK <= t1;
+                    let len = if pair {
+                        2 * COL_BLOCK
+                    } else {
+                        COL_BLOCK.min(t1 - i0)
+                    };
                     if small_set {
                         let rows = r..r + KERNEL_ROWS;
                         let acc =
@@ -370,16 +374,32 @@ fn linear_f32<F: Fma, W: WeightRows>(
                             emit(p0 + r + b, i0, &a[..len]);
                         }
                     } else {
-                        let acc = if len == COL_BLOCK {
-                            block::<F, true>(fma, weights, input, i0, len)
+                        let mut emit_block =
+                            |at: usize, acc: &[[f32; COL_BLOCK]; KERNEL_ROWS], len| {
+                                for (b, a) in acc.iter().enumerate().take(live) {
+                                    let (s, o) = (scale[r + b], bias[r + b]);
+                                    let values: [f32; COL_BLOCK] =
+                                        core::array::from_fn(|t| a[t] * s + o);
+                                    emit(p0 + r + b, at, &values[..len]);
+                                }
+                            };
+                        if pair {
+                            let [first, second] =
+                                blocks::<F, true, 2>(fma, weights, input, i0, COL_BLOCK);
+                            emit_block(i0, &first, COL_BLOCK);
+                            emit_block(i0 + COL_BLOCK, &second, COL_BLOCK);
+                        } else if len == COL_BLOCK {
+                            emit_block(
+                                i0,
+                                &blocks::<F, true, 1>(fma, weights, input, i0, len)[0],
+                                len,
+                            );
                         } else {
-                            block::<F, false>(fma, weights, input, i0, len)
-                        };
-                        for (b, a) in acc.iter().enumerate().take(live) {
-                            for t in 0..len {
-                                values[t] = a[t] * scale[r + b] + bias[r + b];
-                            }
-                            emit(p0 + r + b, i0, &values[..len]);
+                            emit_block(
+                                i0,
+                                &blocks::<F, false, 1>(fma, weights, input, i0, len)[0],
+                                len,
+                            );
                         }
                     }
                     i0 += len;
@@ -392,17 +412,20 @@ fn linear_f32<F: Fma, W: WeightRows>(
     }
 }
 
-/// Accumulates one `KERNEL_ROWS x COL_BLOCK` block over all input channels, in order;
-/// `w[k]` holds the block's weights of input `k`. The accumulators stay in registers.
+/// Accumulates `B` side-by-side `KERNEL_ROWS x COL_BLOCK` blocks (points `i0..` and, for
+/// `B = 2`, the next [`COL_BLOCK`]) over all input channels, in order; `w[k]` holds the
+/// blocks' weights of input `k`. The accumulators stay in registers (two blocks where the
+/// CPU has 32 vector registers: [`Fma::WIDE_REGISTERS`]). `len` counts the first block's
+/// points (every block but a lone last one is full).
 #[inline(always)]
-fn block<F: Fma, const FULL: bool>(
+fn blocks<F: Fma, const FULL: bool, const B: usize>(
     fma: F,
     w: &[[f32; KERNEL_ROWS]],
     input: &Input<'_>,
     i0: usize,
     len: usize,
-) -> [[f32; COL_BLOCK]; KERNEL_ROWS] {
-    let mut acc = [[0.0f32; COL_BLOCK]; KERNEL_ROWS];
+) -> [[[f32; COL_BLOCK]; KERNEL_ROWS]; B] {
+    let mut acc = [[[0.0f32; COL_BLOCK]; KERNEL_ROWS]; B];
     let mut weights = w.iter();
     let first = input.start + i0;
     let stride = input.stride;
@@ -410,19 +433,24 @@ fn block<F: Fma, const FULL: bool>(
         // `rest` starts at the current channel's first point.
         let mut rest = part.get(first..).unwrap_or(&[]);
         for wk in weights.by_ref().take(rows) {
-            let mut x = [0.0f32; COL_BLOCK];
+            let mut x = [[0.0f32; COL_BLOCK]; B];
             if FULL {
-                if let Some(values) = rest.first_chunk::<COL_BLOCK>() {
-                    x = *values;
+                for (b, xb) in x.iter_mut().enumerate() {
+                    let points = rest.get(b * COL_BLOCK..).unwrap_or(&[]);
+                    if let Some(values) = points.first_chunk::<COL_BLOCK>() {
+                        *xb = *values;
+                    }
                 }
             } else {
-                for (xt, &v) in x[..len].iter_mut().zip(rest) {
+                for (xt, &v) in x[0][..len].iter_mut().zip(rest) {
                     *xt = v;
                 }
             }
             rest = rest.get(stride..).unwrap_or(&[]);
-            for (a, &wb) in acc.iter_mut().zip(wk) {
-                fma.mul_add_lanes(wb, &x, a);
+            for (ab, xb) in acc.iter_mut().zip(&x) {
+                for (a, &wb) in ab.iter_mut().zip(wk) {
+                    fma.mul_add_lanes(wb, xb, a);
+                }
             }
         }
     }
@@ -622,13 +650,16 @@ mod tests {
         assert!(paths_differ, "the test values do not tell the paths apart");
     }
 
-    /// The dispatched kernel (the FMA instruction where the CPU has it) and the portable
-    /// one (libm's exact `fmaf` on builds without the instruction) give the same bits.
+    /// The dispatched kernels (the FMA instruction where the CPU has it; AVX-512's pairs of
+    /// register blocks where it has that) and the portable one (libm's exact `fmaf` on
+    /// builds without the instruction) give the same bits, on full tiles, full and partial
+    /// pairs of blocks and a lone partial block.
     #[test]
     fn dispatched_and_portable_kernels_agree_bit_for_bit() {
+        use super::super::dispatch::{limit_kernels, KernelSet};
         const ROWS: usize = 9;
         const COLS: usize = 37;
-        const N: usize = 45;
+        const N: usize = 109;
         let w: [f32; ROWS * COLS] = core::array::from_fn(|i| libm::sinf(i as f32 * 0.37) * 0.3);
         let bias: [f32; ROWS] = core::array::from_fn(|i| i as f32 * 0.1 - 0.4);
         let x: [f32; COLS * N] = core::array::from_fn(|i| libm::cosf(i as f32 * 1.3) * 2.0);
@@ -639,10 +670,6 @@ mod tests {
             bias: &bias,
         };
         let input = Input::one(&x, COLS, N);
-        let mut dispatched = [0.0f32; ROWS * N];
-        linear(&dense, &input, 0..ROWS, |r, i0, v| {
-            store(&mut dispatched, N, r, i0, v)
-        });
         let mut portable = [0.0f32; ROWS * N];
         linear_with(
             super::super::dispatch::Portable,
@@ -651,7 +678,14 @@ mod tests {
             0..ROWS,
             |r, i0, v| store(&mut portable, N, r, i0, v),
         );
-        assert_eq!(dispatched.map(f32::to_bits), portable.map(f32::to_bits));
+        for set in [KernelSet::Avx2, KernelSet::Avx512] {
+            limit_kernels(set);
+            let mut dispatched = [f32::NAN; ROWS * N];
+            linear(&dense, &input, 0..ROWS, |r, i0, v| {
+                store(&mut dispatched, N, r, i0, v)
+            });
+            assert_eq!(dispatched.map(f32::to_bits), portable.map(f32::to_bits));
+        }
     }
 
     #[test]

@@ -27,7 +27,7 @@ pub fn point_major_avx2<const G: usize>(
     out: &mut [f32],
 ) {
     use core::arch::x86_64::{_mm256_loadu_ps, _mm256_storeu_ps};
-    if G % 8 != 0 || rows.len() < G * n || out.len() < G * n {
+    if !G.is_multiple_of(8) || rows.len() < G * n || out.len() < G * n {
         return point_major::<G>(rows, n, out);
     }
     let blocks = n / 8;
