@@ -9,7 +9,9 @@
 //! an online softmax, so no `N x N x heads` score buffer exists.
 
 use crate::limits::{MAX_FEATURE_DIM, MAX_HEADS, MAX_KNN};
-use crate::nn::blocking::{self, channels_for_rows, EDGE_CHANNELS, SHORT_ROW_CHANNELS};
+use crate::nn::blocking::{
+    self, channels_for_rows, EDGE_CHANNELS, SHORT_ROW_CHANNELS, WIDE_SHORT_ROW_CHANNELS,
+};
 use crate::nn::dispatch::{with_fma, Fma, Kernel};
 use crate::nn::linear::{accumulate, chunk_rows, larger, store, store_point_major};
 use crate::nn::{
@@ -290,10 +292,13 @@ fn edge_conv<F: Fma>(
     // Channels finished together (as many as the scratch holds), and the neighbour rows a
     // chunk needs at least.
     let fits = |g: usize| scratch.len() >= n * (2 * g + g.max(ROW_BLOCK));
-    let group = [channels_for_rows(EDGE_CHANNELS, n), EDGE_CHANNELS]
-        .into_iter()
-        .find(|&g| fits(g))
-        .unwrap_or(1);
+    let group = [
+        channels_for_rows(EDGE_CHANNELS, n, F::WIDE_REGISTERS),
+        EDGE_CHANNELS,
+    ]
+    .into_iter()
+    .find(|&g| fits(g))
+    .unwrap_or(1);
     let least_rows = n * group.max(ROW_BLOCK);
     let (maxima, rest) = scratch.split_at_mut(group * n);
     let (point_major, rest) = rest.split_at_mut(if group > 1 { group * n } else { 0 });
@@ -323,7 +328,9 @@ fn edge_conv<F: Fma>(
                 point_major,
                 edges,
             };
-            if g == SHORT_ROW_CHANNELS {
+            if g == WIDE_SHORT_ROW_CHANNELS {
+                channel_group.finish::<F, WIDE_SHORT_ROW_CHANNELS>(fma);
+            } else if g == SHORT_ROW_CHANNELS {
                 channel_group.finish::<F, SHORT_ROW_CHANNELS>(fma);
             } else if g == EDGE_CHANNELS {
                 channel_group.finish::<F, EDGE_CHANNELS>(fma);

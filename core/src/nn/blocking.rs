@@ -7,12 +7,12 @@
 pub use sizes::*;
 
 /// Channels whose statistics are summed together on rows of `n` points: [`SHORT_ROW_CHANNELS`]
-/// on short rows, else `channels`.
-pub const fn channels_for_rows(channels: usize, n: usize) -> usize {
-    if n <= SHORT_ROW_POINTS {
-        SHORT_ROW_CHANNELS
-    } else {
-        channels
+/// on short rows ([`WIDE_SHORT_ROW_CHANNELS`] with `wide` registers), else `channels`.
+pub const fn channels_for_rows(channels: usize, n: usize, wide: bool) -> usize {
+    match (n <= SHORT_ROW_POINTS, wide) {
+        (true, true) => WIDE_SHORT_ROW_CHANNELS,
+        (true, false) => SHORT_ROW_CHANNELS,
+        (false, _) => channels,
     }
 }
 
@@ -54,6 +54,9 @@ mod sizes {
     pub const SHORT_ROW_CHANNELS: usize = 16;
     /// Most points of a short row (2 KiB of `f32`).
     pub const SHORT_ROW_POINTS: usize = 512;
+    /// [`SHORT_ROW_CHANNELS`] where the CPU has 32 vector registers (AVX-512): thirty-two
+    /// f64 sums are eight chains of adds in flight.
+    pub const WIDE_SHORT_ROW_CHANNELS: usize = 32;
 }
 
 #[cfg(target_arch = "arm")]
@@ -90,4 +93,6 @@ mod sizes {
     pub const SHORT_ROW_CHANNELS: usize = 4;
     /// Most points of a short row.
     pub const SHORT_ROW_POINTS: usize = 512;
+    /// [`SHORT_ROW_CHANNELS`] with wide registers (no 32-bit Arm CPU has them).
+    pub const WIDE_SHORT_ROW_CHANNELS: usize = 4;
 }

@@ -89,8 +89,9 @@ pub trait Fma: Copy {
     }
 
     /// [`norm::row_sums`]: instance norm's running sums of `G` rows side by side (AVX2 on
-    /// x86-64 for sixteen rows, with the default f64 statistics; the same additions in the
-    /// same order, so every path gives the same bits).
+    /// x86-64 for sixteen rows, and for thirty-two with AVX-512's 32 registers, with the
+    /// default f64 statistics; the same additions in the same order, so every path gives the
+    /// same bits).
     #[inline(always)]
     fn row_sums<const G: usize>(self, pass: RowPass<'_, G>) -> [StatSum; G] {
         norm::row_sums(pass)
@@ -270,6 +271,12 @@ impl X86Fma {
     pub fn detect() -> Option<Self> {
         (kernel_set() >= KernelSet::Avx2 as u8).then_some(X86Fma(()))
     }
+
+    /// The AVX-512 token if this CPU has AVX-512 F, BW, VL and VNNI besides, the OS saves
+    /// their registers and [`limit_kernels`] allows them.
+    pub fn detect_avx512() -> Option<X86Fma<true>> {
+        (kernel_set() >= KernelSet::Avx512 as u8).then_some(X86Fma(()))
+    }
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -342,14 +349,10 @@ impl<const AVX512: bool> Fma for X86Fma<AVX512> {
     #[inline(always)]
     fn row_sums<const G: usize>(self, pass: RowPass<'_, G>) -> [StatSum; G] {
         #[cfg(not(feature = "f32-statistics"))]
-        if let Ok(rows) = <&[&[f32]; 16]>::try_from(pass.rows.as_slice()) {
-            // `G` is 16 here, so `means` converts too.
-            let means = pass
-                .means
-                .and_then(|m| <&[f32; 16]>::try_from(m.as_slice()).ok());
-            let n = pass.n;
-            let sums = norm::row_sums_avx2(self.avx2(), RowPass { rows, n, means });
-            return core::array::from_fn(|c| sums[c]);
+        match (G, self.avx512()) {
+            (32, Some(avx512)) => return norm::row_sums_avx512(avx512, pass),
+            (16, _) => return norm::row_sums_avx2(self.avx2(), pass),
+            _ => {}
         }
         norm::row_sums(pass)
     }

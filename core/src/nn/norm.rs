@@ -1,6 +1,8 @@
 //! Instance normalisation, L2 normalisation and the activations.
 
-use super::blocking::{channels_for_rows, NORM_CHANNELS, SHORT_ROW_CHANNELS};
+use super::blocking::{
+    channels_for_rows, NORM_CHANNELS, SHORT_ROW_CHANNELS, WIDE_SHORT_ROW_CHANNELS,
+};
 use super::dispatch::{with_fma, Fma, Kernel, Portable};
 use super::sqrt::sqrt;
 
@@ -173,7 +175,10 @@ impl Kernel<()> for InstanceNormRows<'_> {
     #[inline(always)]
     fn run<F: Fma>(self, fma: F) {
         let n = self.n;
-        if channels_for_rows(NORM_CHANNELS, n) == SHORT_ROW_CHANNELS {
+        let group = channels_for_rows(NORM_CHANNELS, n, F::WIDE_REGISTERS);
+        if group == WIDE_SHORT_ROW_CHANNELS {
+            normalize_groups::<F, WIDE_SHORT_ROW_CHANNELS>(fma, self.x, n);
+        } else if group == SHORT_ROW_CHANNELS {
             normalize_groups::<F, SHORT_ROW_CHANNELS>(fma, self.x, n);
         } else {
             normalize_groups::<F, NORM_CHANNELS>(fma, self.x, n);
@@ -256,63 +261,126 @@ fn continued_row_sums<const G: usize>(
     sums
 }
 
-/// [`row_sums`] of sixteen rows with AVX2, the same bits: blocks of 8 points of each row are
-/// loaded whole and transposed (8 x 8, twice), so that each point's sixteen values are two
-/// vectors; their squared deviations are taken in f32 as [`Moments::squared_deviation`], and
-/// each half is widened to f64 and added to four vectors of running sums, point after point
-/// (each lane's sum adds its row's values in order, as [`StatSum::add`]). The strided scalar
-/// loads of [`row_sums`] cost about three instructions a value. The last `n % 8` points continue
-/// the blocks' sums as [`row_sums`] does; rows shorter than `n` take [`row_sums`]' path.
+/// [`row_sums`] of `G` = sixteen rows (others take [`row_sums`]' path) with AVX2, the same bits: each point's values (or squared
+/// deviations) as two vectors (transposed blocks of 8 points), each half widened to f64 and added to
+/// four vectors of running sums, point after point (each lane's sum adds its row's values in
+/// order, as [`StatSum::add`]). The strided scalar loads of [`row_sums`] cost about three
+/// instructions a value. The last `n % 8` points continue the blocks' sums as [`row_sums`]
+/// does; rows shorter than `n` take [`row_sums`]' path.
 #[cfg(all(target_arch = "x86_64", not(feature = "f32-statistics")))]
 #[inline(always)]
 #[allow(unsafe_code)]
-pub fn row_sums_avx2(avx2: super::dispatch::X86Fma, pass: RowPass<'_, 16>) -> [StatSum; 16] {
+pub fn row_sums_avx2<const G: usize>(
+    avx2: super::dispatch::X86Fma,
+    pass: RowPass<'_, G>,
+) -> [StatSum; G] {
     use core::arch::x86_64::{
-        __m256, __m256d, _mm256_add_pd, _mm256_castps256_ps128, _mm256_cvtps_pd,
-        _mm256_extractf128_ps, _mm256_loadu_ps, _mm256_mul_ps, _mm256_setzero_pd, _mm256_storeu_pd,
-        _mm256_sub_ps,
+        __m256d, _mm256_add_pd, _mm256_castps256_ps128, _mm256_cvtps_pd, _mm256_extractf128_ps,
+        _mm256_setzero_pd, _mm256_storeu_pd,
     };
-    let RowPass { rows, n, means } = pass;
-    if rows.iter().any(|r| r.len() < n) {
+    if G != 16 || pass.rows.iter().any(|r| r.len() < pass.n) {
         return row_sums(pass);
     }
-    let blocks = n / 8;
-    let mut sums = [0.0f64; 16];
-    // SAFETY: an `X86Fma` exists only on a CPU with AVX2 (see `dispatch`). Each load reads 8
-    // `f32` of a row at `8b`, `8b + 8 <= n <= len` (checked above), or of `means` at 0 or 8;
-    // each store writes 4 `f64` into `sums` (16) at 0, 4, 8 or 12; `loadu`/`storeu` need no
-    // alignment.
+    let mut sums = [0.0f64; G];
+    // SAFETY: an `X86Fma` exists only on a CPU with AVX2 (see `dispatch`); the rows hold `n`
+    // values (checked above); each store writes 4 `f64` into `sums` (16) at 0, 4, 8 or 12;
+    // `storeu` needs no alignment.
     unsafe {
-        let centre: Option<[__m256; 2]> =
-            means.map(|m| [0, 8].map(|at| _mm256_loadu_ps(m.as_ptr().add(at))));
         let mut acc: [__m256d; 4] = [_mm256_setzero_pd(); 4];
-        for b in 0..blocks {
-            let half = |h: usize| {
-                super::transpose::transpose8(
-                    avx2,
-                    core::array::from_fn(|i| _mm256_loadu_ps(rows[8 * h + i].as_ptr().add(8 * b))),
-                )
-            };
-            let points = [half(0), half(1)];
-            for t in 0..8 {
-                for (h, columns) in points.iter().enumerate() {
-                    let mut v = columns[t];
-                    if let Some(centre) = centre {
-                        let d = _mm256_sub_ps(v, centre[h]);
-                        v = _mm256_mul_ps(d, d);
-                    }
-                    let low = _mm256_cvtps_pd(_mm256_castps256_ps128(v));
-                    let high = _mm256_cvtps_pd(_mm256_extractf128_ps::<1>(v));
-                    acc[2 * h] = _mm256_add_pd(acc[2 * h], low);
-                    acc[2 * h + 1] = _mm256_add_pd(acc[2 * h + 1], high);
-                }
-            }
-        }
+        point_vectors(avx2, pass, |h, v| {
+            let low = _mm256_cvtps_pd(_mm256_castps256_ps128(v));
+            let high = _mm256_cvtps_pd(_mm256_extractf128_ps::<1>(v));
+            acc[2 * h] = _mm256_add_pd(acc[2 * h], low);
+            acc[2 * h + 1] = _mm256_add_pd(acc[2 * h + 1], high);
+        });
         for (q, a) in acc.iter().enumerate() {
             _mm256_storeu_pd(sums.as_mut_ptr().add(4 * q), *a);
         }
     }
-    continued_row_sums(sums.map(StatSum::of_f64), pass, 8 * blocks)
+    continued_row_sums(sums.map(StatSum::of_f64), pass, pass.n / 8 * 8)
+}
+
+/// [`row_sums`] of `G` = thirty-two rows (others take [`row_sums`]' path) with AVX-512, the same bits: as [`row_sums_avx2`], each
+/// point's eight-row vectors widened to f64 whole (`vcvtps2pd` to 512 bits) and added to four
+/// 8-lane vectors of running sums.
+#[cfg(all(target_arch = "x86_64", not(feature = "f32-statistics")))]
+#[inline(always)]
+#[allow(unsafe_code)]
+pub fn row_sums_avx512<const G: usize>(
+    avx512: super::dispatch::X86Fma<true>,
+    pass: RowPass<'_, G>,
+) -> [StatSum; G] {
+    use core::arch::x86_64::{
+        __m512d, _mm512_add_pd, _mm512_cvtps_pd, _mm512_setzero_pd, _mm512_storeu_pd,
+    };
+    if G != 32 || pass.rows.iter().any(|r| r.len() < pass.n) {
+        return row_sums(pass);
+    }
+    let mut sums = [0.0f64; G];
+    // SAFETY: an `X86Fma<true>` exists only on a CPU with AVX-512 F (see `dispatch`); the
+    // rows hold `n` values (checked above); each store writes 8 `f64` into `sums` (32) at 0,
+    // 8, 16 or 24; `storeu` needs no alignment.
+    unsafe {
+        let mut acc: [__m512d; 4] = [_mm512_setzero_pd(); 4];
+        point_vectors(avx512.avx2(), pass, |h, v| {
+            acc[h] = _mm512_add_pd(acc[h], _mm512_cvtps_pd(v));
+        });
+        for (q, a) in acc.iter().enumerate() {
+            _mm512_storeu_pd(sums.as_mut_ptr().add(8 * q), *a);
+        }
+    }
+    continued_row_sums(sums.map(StatSum::of_f64), pass, pass.n / 8 * 8)
+}
+
+/// For each point of the whole blocks of 8 points, in order, `add(h, v)` for each group `h`
+/// of 8 rows: `v` holds the point's values of rows `8h..8h + 8` (squared deviations from the
+/// means in f32, as [`Moments::squared_deviation`], on the second pass). The blocks of each
+/// row are loaded whole and transposed (8 x 8). The caller checked that every row holds `n`
+/// values and `G` is 8, 16, 24 or 32.
+#[cfg(all(target_arch = "x86_64", not(feature = "f32-statistics")))]
+#[inline(always)]
+#[allow(unsafe_code)]
+fn point_vectors<const G: usize>(
+    avx2: super::dispatch::X86Fma,
+    pass: RowPass<'_, G>,
+    mut add: impl FnMut(usize, core::arch::x86_64::__m256),
+) {
+    use core::arch::x86_64::{_mm256_loadu_ps, _mm256_mul_ps, _mm256_setzero_ps, _mm256_sub_ps};
+    /// Most groups of 8 rows.
+    const OCTETS: usize = 4;
+    let RowPass { rows, n, means } = pass;
+    // SAFETY: an `X86Fma` exists only on a CPU with AVX2 (see `dispatch`). Each load reads 8
+    // `f32` of a row at `8b`, `8b + 8 <= n <= len` (the caller's check), or of `means` (`G`)
+    // at `8h < G`; `loadu` needs no alignment.
+    unsafe {
+        let mut centre = [_mm256_setzero_ps(); OCTETS];
+        if let Some(m) = means {
+            for (h, c) in centre.iter_mut().enumerate().take(G / 8) {
+                *c = _mm256_loadu_ps(m.as_ptr().add(8 * h));
+            }
+        }
+        for b in 0..n / 8 {
+            let mut points = [[_mm256_setzero_ps(); 8]; OCTETS];
+            for (h, columns) in points.iter_mut().enumerate().take(G / 8) {
+                let mut block = [_mm256_setzero_ps(); 8];
+                for (i, row) in block.iter_mut().enumerate() {
+                    *row = _mm256_loadu_ps(rows[8 * h + i].as_ptr().add(8 * b));
+                }
+                *columns = super::transpose::transpose8(avx2, block);
+            }
+            for t in 0..8 {
+                for (h, columns) in points.iter().enumerate().take(G / 8) {
+                    let v = columns[t];
+                    if means.is_some() {
+                        let d = _mm256_sub_ps(v, centre[h]);
+                        add(h, _mm256_mul_ps(d, d));
+                    } else {
+                        add(h, v);
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// `max(x, 0)`.
@@ -410,8 +478,9 @@ mod tests {
         }
     }
 
-    /// The AVX2 sums (8 x 8 transposes) are the portable ones bit for bit, on both passes,
-    /// for lengths around the blocks of 8 points and for values of every magnitude.
+    /// The AVX2 sums of 16 rows and the AVX-512 sums of 32 (8 x 8 transposes) are the
+    /// portable ones bit for bit, on both passes, for lengths around the blocks of 8 points
+    /// and for values of every magnitude.
     #[cfg(all(target_arch = "x86_64", not(feature = "f32-statistics")))]
     #[test]
     fn avx2_row_sums_are_the_portable_sums() {
@@ -419,6 +488,19 @@ mod tests {
         let Some(avx2) = X86Fma::detect() else {
             return;
         };
+        vector_sums_are_the_portable_sums::<16>(|pass: RowPass<'_, 16>| row_sums_avx2(avx2, pass));
+        if let Some(avx512) = X86Fma::detect_avx512() {
+            vector_sums_are_the_portable_sums::<32>(|pass: RowPass<'_, 32>| {
+                row_sums_avx512(avx512, pass)
+            });
+        }
+    }
+
+    /// `vector` (the sums of `G` rows) against [`row_sums`], bit for bit.
+    #[cfg(all(target_arch = "x86_64", not(feature = "f32-statistics")))]
+    fn vector_sums_are_the_portable_sums<const G: usize>(
+        vector: impl Fn(RowPass<'_, G>) -> [StatSum; G],
+    ) {
         let mut state = 0x9E37_79B9_7F4A_7C15u64;
         let mut next = || {
             state = state
@@ -429,32 +511,32 @@ mod tests {
             (bits as f32 / u32::MAX as f32 - 0.25) * scale
         };
         for n in [0, 1, 7, 8, 9, 16, 255, 256, 257, 300] {
-            let values: [[f32; 300]; 16] =
+            let values: [[f32; 300]; G] =
                 core::array::from_fn(|_| core::array::from_fn(|_| next()));
-            let rows: [&[f32]; 16] = core::array::from_fn(|c| &values[c][..n]);
-            let means: [f32; 16] = core::array::from_fn(|_| next());
+            let rows: [&[f32]; G] = core::array::from_fn(|c| &values[c][..n]);
+            let means: [f32; G] = core::array::from_fn(|_| next());
             for m in [None, Some(&means)] {
                 let pass = RowPass {
                     rows: &rows,
                     n,
                     means: m,
                 };
-                let (portable, vector) = (row_sums(pass), row_sums_avx2(avx2, pass));
+                let (portable, vector) = (row_sums(pass), vector(pass));
                 for (p, v) in portable.iter().zip(&vector) {
-                    assert_eq!(p.sum.to_bits(), v.sum.to_bits(), "n = {n}");
+                    assert_eq!(p.sum.to_bits(), v.sum.to_bits(), "G = {G}, n = {n}");
                 }
             }
         }
         // Points past the last block of 8 continue the blocks' sums (8 + 2^-50 rounds back to 8
         // four times; the four small values summed first would not).
         let row: [f32; 12] = core::array::from_fn(|i| if i < 8 { 1.0 } else { 2f32.powi(-50) });
-        let rows: [&[f32]; 16] = [&row; 16];
+        let rows: [&[f32]; G] = [&row; G];
         let pass = RowPass {
             rows: &rows,
             n: 12,
             means: None,
         };
-        let (portable, vector) = (row_sums(pass), row_sums_avx2(avx2, pass));
+        let (portable, vector) = (row_sums(pass), vector(pass));
         assert_eq!(portable[0].sum, 8.0);
         assert_eq!(vector[0].sum.to_bits(), portable[0].sum.to_bits());
     }
