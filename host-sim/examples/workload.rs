@@ -11,10 +11,15 @@
 //! `RESULT {"n", "precision", "folded", "runs", "median_ms", "min_ms", "max_ms", "matches"}`.
 //! WEIGHTS is a precision (int8 with the converter's folded residual blocks) or
 //! `int8-unfolded` (the reference's blocks, `gomatch-tools convert --fold-blocks=false`).
+//!
+//! `GOMATCH_KERNELS=portable|avx2|avx512` caps the kernel set the core picks at run time
+//! (`gomatch::nn::dispatch::limit_kernels`; default: the widest this CPU has), to time or
+//! count each set on one machine (the results are the same bits).
 
 use std::sync::Mutex;
 use std::time::Instant;
 
+use gomatch::nn::dispatch::{limit_kernels, KernelSet};
 use gomatch::{Localizer, Map, Matcher, Model, Precision};
 use gomatch_tools::convert::{convert_with, Options};
 use gomatch_tools::quantize::Rounding;
@@ -33,6 +38,14 @@ static LOCALIZER: Mutex<Localizer<CAPACITY, f16>> = Mutex::new(Localizer::new())
 const WARMUP: usize = 2;
 
 fn main() -> anyhow::Result<()> {
+    if let Ok(kernels) = std::env::var("GOMATCH_KERNELS") {
+        limit_kernels(match kernels.as_str() {
+            "portable" => KernelSet::Portable,
+            "avx2" => KernelSet::Avx2,
+            "avx512" => KernelSet::Avx512,
+            other => anyhow::bail!("GOMATCH_KERNELS={other}: expected portable, avx2 or avx512"),
+        });
+    }
     let args: Vec<String> = std::env::args().skip(1).collect();
     match args.iter().map(String::as_str).collect::<Vec<_>>()[..] {
         ["match", n, weights] => match_once(n.parse()?, parse_weights(weights)?),

@@ -46,9 +46,9 @@ pub trait Fma: Copy {
 
     /// `acc[t] = acc[t] + w * x[t]` in every lane, the product and the sum each rounded
     /// (attention's register tiles, unfused as the reference computes them). The default is
-    /// a loop the compiler vectorises; AVX-512 multiplies and adds 16 lanes explicitly (the
-    /// compiler's own choice there gathers across tiles). Exact IEEE operations, so every
-    /// path gives the same bits.
+    /// a loop the compiler vectorises; x86-64 multiplies and adds 8 (AVX2) or 16 (AVX-512)
+    /// lanes explicitly (the compiler's own choice there vectorises across the tile's rows,
+    /// with gathers). Exact IEEE operations, so every path gives the same bits.
     #[inline(always)]
     fn add_products<const L: usize>(self, w: f32, x: &[f32; L], acc: &mut [f32; L]) {
         for (a, &xt) in acc.iter_mut().zip(x) {
@@ -311,20 +311,29 @@ impl<const AVX512: bool> Fma for X86Fma<AVX512> {
     #[allow(unsafe_code)]
     fn add_products<const L: usize>(self, w: f32, x: &[f32; L], acc: &mut [f32; L]) {
         use core::arch::x86_64::{
+            _mm256_add_ps, _mm256_loadu_ps, _mm256_mul_ps, _mm256_set1_ps, _mm256_storeu_ps,
             _mm512_add_ps, _mm512_loadu_ps, _mm512_mul_ps, _mm512_set1_ps, _mm512_storeu_ps,
         };
-        if let (Some(_avx512), true) = (self.avx512(), L == 16) {
+        match (L, self.avx512()) {
             // SAFETY: an `X86Fma<true>` exists only on a CPU with AVX-512 F; `x` and `acc`
             // hold 16 f32 (64 bytes) each, read and written unaligned.
-            unsafe {
+            (16, Some(_avx512)) => unsafe {
                 let product = _mm512_mul_ps(_mm512_set1_ps(w), _mm512_loadu_ps(x.as_ptr()));
                 let sum = _mm512_add_ps(_mm512_loadu_ps(acc.as_ptr()), product);
                 _mm512_storeu_ps(acc.as_mut_ptr(), sum);
+            },
+            // SAFETY: an `X86Fma` exists only on a CPU with AVX2; `x` and `acc` hold 8 f32
+            // (32 bytes) each, read and written unaligned.
+            (8, _) => unsafe {
+                let product = _mm256_mul_ps(_mm256_set1_ps(w), _mm256_loadu_ps(x.as_ptr()));
+                let sum = _mm256_add_ps(_mm256_loadu_ps(acc.as_ptr()), product);
+                _mm256_storeu_ps(acc.as_mut_ptr(), sum);
+            },
+            _ => {
+                for (a, &xt) in acc.iter_mut().zip(x) {
+                    *a += w * xt;
+                }
             }
-            return;
-        }
-        for (a, &xt) in acc.iter_mut().zip(x) {
-            *a += w * xt;
         }
     }
 
