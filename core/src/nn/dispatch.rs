@@ -51,8 +51,8 @@ pub trait Fma: Copy {
     /// with gathers). Exact IEEE operations, so every path gives the same bits.
     #[inline(always)]
     fn add_products<const L: usize>(self, w: f32, x: &[f32; L], acc: &mut [f32; L]) {
-        for (a, &xt) in acc.iter_mut().zip(x) {
-            *a += w * xt;
+        for l in 0..L {
+            acc[l] += w * x[l];
         }
     }
 
