@@ -80,6 +80,19 @@ pub trait Fma: Copy {
         integer::scaled_group_sums(self, w, tile)
     }
 
+    /// [`Fma::scaled_group_sums`] of two consecutive row blocks (`w` holds both, `pairs`
+    /// each; used where [`Fma::WIDE_REGISTERS`]: AVX-512 shares each tile load between the
+    /// two, the same sums).
+    #[inline(always)]
+    fn scaled_group_sums_pair(
+        self,
+        w: &[WeightPairs],
+        pairs: usize,
+        tile: QuantizedTile<'_>,
+    ) -> [OutputBlock; 2] {
+        integer::scaled_group_sums_pair(self, w, pairs, tile)
+    }
+
     /// [`integer::interleave_pairs`]: int8 weight rows laid out as the integer kernel's
     /// register-block slots (SSE4.1 on x86-64; a pure permutation, so every path gives the
     /// same slots).
@@ -343,6 +356,19 @@ impl<const AVX512: bool> Fma for X86Fma<AVX512> {
             return integer::scaled_group_sums_avx512(avx512, w, tile);
         }
         integer::scaled_group_sums_avx2(self.avx2(), w, tile)
+    }
+
+    #[inline(always)]
+    fn scaled_group_sums_pair(
+        self,
+        w: &[WeightPairs],
+        pairs: usize,
+        tile: QuantizedTile<'_>,
+    ) -> [OutputBlock; 2] {
+        match self.avx512() {
+            Some(avx512) => integer::scaled_group_sums_pair_avx512(avx512, w, pairs, tile),
+            None => integer::scaled_group_sums_pair(self, w, pairs, tile),
+        }
     }
 
     #[inline(always)]

@@ -92,13 +92,26 @@ pub fn linear_int8<F: Fma, W: WeightRows>(
                 pairs: &tile.0,
                 groups: &groups[..group_count],
             };
-            for r in (0..count).step_by(ROWS) {
-                let block = &panel.0[r / ROWS * pairs..(r / ROWS + 1) * pairs];
-                let y = fma.scaled_group_sums(block, quantized);
-                for (r, yr) in (r..count).zip(&y) {
+            let mut emit_block = |r: usize, y: &OutputBlock| {
+                for (r, yr) in (r..count).zip(y) {
                     let (scale, offset) = (row_scale[r], bias[r]);
                     let values: [f32; TILE] = core::array::from_fn(|t| yr[t] * scale + offset);
                     emit(p0 + r, i0, &values[..len]);
+                }
+            };
+            let mut r = 0;
+            while r < count {
+                let block = r / ROWS * pairs;
+                if F::WIDE_REGISTERS && r + ROWS < count {
+                    let blocks = &panel.0[block..block + 2 * pairs];
+                    let [first, second] = fma.scaled_group_sums_pair(blocks, pairs, quantized);
+                    emit_block(r, &first);
+                    emit_block(r + ROWS, &second);
+                    r += 2 * ROWS;
+                } else {
+                    let y = fma.scaled_group_sums(&panel.0[block..block + pairs], quantized);
+                    emit_block(r, &y);
+                    r += ROWS;
                 }
             }
             i0 += len;
@@ -173,6 +186,21 @@ pub fn scaled_group_sums<F: Fma>(
         }
     }
     y
+}
+
+/// [`Fma::scaled_group_sums`] of two consecutive row blocks: `w` holds both, `pairs` each.
+#[inline(always)]
+pub fn scaled_group_sums_pair<F: Fma>(
+    fma: F,
+    w: &[WeightPairs],
+    pairs: usize,
+    tile: QuantizedTile<'_>,
+) -> [OutputBlock; 2] {
+    let (first, second) = w.split_at(pairs.min(w.len()));
+    [
+        fma.scaled_group_sums(first, tile),
+        fma.scaled_group_sums(second, tile),
+    ]
 }
 
 /// Channels that share one point scale. 15 bits of a point's largest value over a whole
@@ -663,6 +691,59 @@ pub fn scaled_group_sums_avx512(
         }
         for (row, o) in y.iter_mut().zip(&out) {
             _mm512_storeu_ps(row.as_mut_ptr(), *o);
+        }
+    }
+    y
+}
+
+/// [`scaled_group_sums`] of two consecutive row blocks (`w` holds both, `pairs` each) with
+/// AVX-512 VNNI: each tile load serves both blocks' eight `vpdpwssd` (eight chains in flight
+/// without splitting the pairs), then both blocks are converted, scaled and added as
+/// [`scaled_group_sums_avx512`] does.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+#[allow(unsafe_code)]
+pub fn scaled_group_sums_pair_avx512(
+    _avx512: super::dispatch::X86Fma<true>,
+    w: &[WeightPairs],
+    pairs: usize,
+    quantized: QuantizedTile<'_>,
+) -> [OutputBlock; 2] {
+    use core::arch::x86_64::{
+        _mm512_add_ps, _mm512_cvtepi32_ps, _mm512_dpwssd_epi32, _mm512_loadu_ps,
+        _mm512_loadu_si512, _mm512_mul_ps, _mm512_set1_epi32, _mm512_setzero_ps,
+        _mm512_setzero_si512, _mm512_storeu_ps,
+    };
+    const { assert!(POINTS == 16 && TILE == 16) };
+    let (first, second) = w.split_at(pairs.min(w.len()));
+    let mut y = [[[0.0f32; TILE]; ROWS]; 2];
+    // SAFETY: as for `scaled_group_sums_avx512`: each integer load reads one `[Pair; 16]`, each
+    // float load one `[f32; 16]`, each store writes one `[f32; 16]`.
+    unsafe {
+        let mut out = [[_mm512_setzero_ps(); ROWS]; 2];
+        for group in quantized.groups {
+            let blocks = [first, second].map(|b| b.get(group.range()).unwrap_or(&[]));
+            let tile = quantized.pairs.get(group.range()).unwrap_or(&[]);
+            let mut acc = [[_mm512_setzero_si512(); ROWS]; 2];
+            for ((w0, w1), xk) in blocks[0].iter().zip(blocks[1]).zip(tile) {
+                let points = _mm512_loadu_si512(xk.as_ptr().cast());
+                for (acc, wk) in acc.iter_mut().zip([w0, w1]) {
+                    for (a, wr) in acc.iter_mut().zip(wk) {
+                        *a = _mm512_dpwssd_epi32(*a, _mm512_set1_epi32(pair_bits(*wr)), points);
+                    }
+                }
+            }
+            let scale = _mm512_loadu_ps(group.scales.as_ptr());
+            for (out, acc) in out.iter_mut().zip(&acc) {
+                for (o, &sums) in out.iter_mut().zip(acc) {
+                    *o = _mm512_add_ps(*o, _mm512_mul_ps(_mm512_cvtepi32_ps(sums), scale));
+                }
+            }
+        }
+        for (y, out) in y.iter_mut().zip(&out) {
+            for (row, o) in y.iter_mut().zip(out) {
+                _mm512_storeu_ps(row.as_mut_ptr(), *o);
+            }
         }
     }
     y
