@@ -265,12 +265,35 @@ fn kernel_set() -> u8 {
     detected.min(LIMIT.load(Ordering::Relaxed))
 }
 
-/// The widest [`KernelSet`] this CPU and its OS support.
+/// The widest [`KernelSet`] this CPU and its OS support: `cpuid` leaf 1 (FMA, OSXSAVE, AVX,
+/// F16C) and leaf 7 (AVX2; AVX-512 F, BW, VL, VNNI), and `xgetbv` for the registers the OS
+/// saves (SSE and AVX state; the opmask and all 512 bits of the 32 vector registers) (Intel
+/// SDM vol. 1, 14.3 "Detection of Intel AVX instructions", 15.2 "Detection of AVX-512
+/// foundation instructions").
 #[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code, unused_unsafe)]
 fn cpu_kernel_set() -> KernelSet {
-    if !cpu_has_avx2_fma() {
+    use core::arch::x86_64::{__cpuid, __cpuid_count, _xgetbv};
+    const LEAF1_ECX: u32 = (1 << 12) | (1 << 27) | (1 << 28) | (1 << 29); // FMA, OSXSAVE, AVX, F16C
+    const AVX2_EBX: u32 = 1 << 5;
+    const AVX512_EBX: u32 = (1 << 16) | (1 << 30) | (1 << 31); // F, BW, VL
+    const AVX512_VNNI_ECX: u32 = 1 << 11;
+    const XMM_YMM_STATE: u64 = 0b110;
+    const OPMASK_ZMM_STATE: u64 = 0b1110_0110;
+    // SAFETY: every x86-64 CPU has `cpuid`.
+    let (max_leaf, leaf1) = unsafe { (__cpuid(0).eax, __cpuid(1)) };
+    if max_leaf < 7 || leaf1.ecx & LEAF1_ECX != LEAF1_ECX {
+        return KernelSet::Portable;
+    }
+    // SAFETY: OSXSAVE (checked above) means the OS enabled `xgetbv`; leaf 7 exists
+    // (`max_leaf >= 7`).
+    let (xcr0, leaf7) = unsafe { (_xgetbv(0), __cpuid_count(7, 0)) };
+    let has = |state: u64, ebx: u32, ecx: u32| {
+        xcr0 & state == state && leaf7.ebx & ebx == ebx && leaf7.ecx & ecx == ecx
+    };
+    if !has(XMM_YMM_STATE, AVX2_EBX, 0) {
         KernelSet::Portable
-    } else if cpu_has_avx512_vnni() {
+    } else if has(OPMASK_ZMM_STATE, AVX512_EBX, AVX512_VNNI_ECX) {
         KernelSet::Avx512
     } else {
         KernelSet::Avx2
@@ -438,50 +461,6 @@ impl<const AVX512: bool> Fma for X86Fma<AVX512> {
             *h = f32_to_f16(f);
         }
     }
-}
-
-/// `cpuid` leaf 1: FMA, OSXSAVE, AVX and F16C; `xgetbv`: the OS saves the SSE and AVX state;
-/// `cpuid` leaf 7: AVX2 (Intel SDM vol. 1, 14.3 "Detection of Intel AVX instructions").
-#[cfg(target_arch = "x86_64")]
-#[allow(unsafe_code, unused_unsafe)]
-fn cpu_has_avx2_fma() -> bool {
-    use core::arch::x86_64::{__cpuid, __cpuid_count, _xgetbv};
-    const FMA: u32 = 1 << 12;
-    const OSXSAVE: u32 = 1 << 27;
-    const AVX: u32 = 1 << 28;
-    const F16C: u32 = 1 << 29;
-    const AVX2: u32 = 1 << 5;
-    const XMM_YMM_STATE: u64 = 0b110;
-    // SAFETY: every x86-64 CPU has `cpuid`.
-    let (max_leaf, leaf1) = unsafe { (__cpuid(0).eax, __cpuid(1)) };
-    if max_leaf < 7 || leaf1.ecx & (FMA | OSXSAVE | AVX | F16C) != FMA | OSXSAVE | AVX | F16C {
-        return false;
-    }
-    // SAFETY: OSXSAVE (checked above) means the OS enabled `xgetbv`.
-    let xcr0 = unsafe { _xgetbv(0) };
-    // SAFETY: as above; leaf 7 exists (max_leaf >= 7).
-    let leaf7 = unsafe { __cpuid_count(7, 0) };
-    xcr0 & XMM_YMM_STATE == XMM_YMM_STATE && leaf7.ebx & AVX2 != 0
-}
-
-/// `cpuid` leaf 7: AVX-512 F, BW, VL and VNNI; `xgetbv`: the OS saves the opmask and all 512
-/// bits of the 32 vector registers (Intel SDM vol. 1, 15.2 "Detection of AVX-512 foundation
-/// instructions"). Called after [`cpu_has_avx2_fma`] found leaf 7 and `xgetbv`.
-#[cfg(target_arch = "x86_64")]
-#[allow(unsafe_code, unused_unsafe)]
-fn cpu_has_avx512_vnni() -> bool {
-    use core::arch::x86_64::{__cpuid_count, _xgetbv};
-    const AVX512F: u32 = 1 << 16;
-    const AVX512BW: u32 = 1 << 30;
-    const AVX512VL: u32 = 1 << 31;
-    const AVX512_VNNI: u32 = 1 << 11;
-    const OPMASK_ZMM_STATE: u64 = 0b1110_0110;
-    // SAFETY: `cpu_has_avx2_fma` found OSXSAVE (so `xgetbv`) and leaf 7.
-    let (xcr0, leaf7) = unsafe { (_xgetbv(0), __cpuid_count(7, 0)) };
-    let ebx = AVX512F | AVX512BW | AVX512VL;
-    xcr0 & OPMASK_ZMM_STATE == OPMASK_ZMM_STATE
-        && leaf7.ebx & ebx == ebx
-        && leaf7.ecx & AVX512_VNNI != 0
 }
 
 /// Runs `kernel` with the best [`Fma`] of this CPU: on x86-64 with AVX2, FMA and F16C inside a
