@@ -51,9 +51,7 @@ pub trait Fma: Copy {
     /// with gathers). Exact IEEE operations, so every path gives the same bits.
     #[inline(always)]
     fn add_products<const L: usize>(self, w: f32, x: &[f32; L], acc: &mut [f32; L]) {
-        for l in 0..L {
-            acc[l] += w * x[l];
-        }
+        add_products(w, x, acc);
     }
 
     /// The integer kernel's register block at point `p` of a tile
@@ -141,6 +139,14 @@ pub trait Fma: Copy {
         for (o, &x) in out.iter_mut().zip(values) {
             *o = f32_to_f16(x);
         }
+    }
+}
+
+/// [`Fma::add_products`] as a loop (in the index form the compiler vectorises lane by lane).
+#[inline(always)]
+fn add_products<const L: usize>(w: f32, x: &[f32; L], acc: &mut [f32; L]) {
+    for l in 0..L {
+        acc[l] += w * x[l];
     }
 }
 
@@ -365,18 +371,15 @@ impl<const AVX512: bool> Fma for X86Fma<AVX512> {
                 let sum = _mm256_add_ps(_mm256_loadu_ps(acc.as_ptr()), product);
                 _mm256_storeu_ps(acc.as_mut_ptr(), sum);
             },
-            _ => {
-                for (a, &xt) in acc.iter_mut().zip(x) {
-                    *a += w * xt;
-                }
-            }
+            _ => add_products(w, x, acc),
         }
     }
 
     #[inline(always)]
     fn scaled_group_sums(self, w: &[WeightPairs], tile: QuantizedTile<'_>) -> OutputBlock {
         if let Some(avx512) = self.avx512() {
-            return integer::scaled_group_sums_avx512(avx512, w, tile);
+            let [y] = integer::scaled_group_sums_avx512(avx512, [w], tile);
+            return y;
         }
         integer::scaled_group_sums_avx2(self.avx2(), w, tile)
     }
@@ -389,7 +392,10 @@ impl<const AVX512: bool> Fma for X86Fma<AVX512> {
         tile: QuantizedTile<'_>,
     ) -> [OutputBlock; 2] {
         match self.avx512() {
-            Some(avx512) => integer::scaled_group_sums_pair_avx512(avx512, w, pairs, tile),
+            Some(avx512) => {
+                let (first, second) = w.split_at(pairs.min(w.len()));
+                integer::scaled_group_sums_avx512(avx512, [first, second], tile)
+            }
             None => integer::scaled_group_sums_pair(self, w, pairs, tile),
         }
     }
@@ -407,11 +413,8 @@ impl<const AVX512: bool> Fma for X86Fma<AVX512> {
     #[inline(always)]
     fn row_sums<const G: usize>(self, pass: RowPass<'_, G>) -> [StatSum; G] {
         #[cfg(not(feature = "f32-statistics"))]
-        match (G, self.avx512()) {
-            (32, Some(avx512)) => return norm::row_sums_avx512(avx512, pass),
-            (16, _) => return norm::row_sums_avx2(self.avx2(), pass),
-            _ => {}
-        }
+        return norm::row_sums_x86(self, pass);
+        #[cfg(feature = "f32-statistics")]
         norm::row_sums(pass)
     }
 

@@ -638,97 +638,42 @@ pub fn scaled_group_sums_avx2(
     y
 }
 
-/// [`scaled_group_sums`] with AVX-512 VNNI: `vpdpwssd` (`_mm512_dpwssd_epi32`: sixteen pair
-/// products added to 32-bit lanes per instruction, the whole tile, with no separate add)
-/// for each group's sums, even and odd pairs in two sets of accumulators (eight chains in
-/// flight; integer sums do not depend on their order), then converted, scaled and added to
-/// the outputs in registers as [`scaled_group_sums_avx2`] does.
+/// [`scaled_group_sums`] of `B` row blocks with AVX-512 VNNI: `vpdpwssd`
+/// (`_mm512_dpwssd_epi32`: sixteen pair products added to 32-bit lanes per instruction, the
+/// whole tile, with no separate add) for each group's sums, each tile load serving every
+/// block (two blocks are eight chains in flight; integer sums do not depend on their order),
+/// then converted, scaled and added to the outputs in registers as
+/// [`scaled_group_sums_avx2`] does.
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 #[allow(unsafe_code)]
-pub fn scaled_group_sums_avx512(
+pub fn scaled_group_sums_avx512<const B: usize>(
     _avx512: super::dispatch::X86Fma<true>,
-    w: &[WeightPairs],
+    blocks: [&[WeightPairs]; B],
     quantized: QuantizedTile<'_>,
-) -> OutputBlock {
-    use core::arch::x86_64::{
-        __m512i, _mm512_add_epi32, _mm512_add_ps, _mm512_cvtepi32_ps, _mm512_dpwssd_epi32,
-        _mm512_loadu_ps, _mm512_loadu_si512, _mm512_mul_ps, _mm512_set1_epi32, _mm512_setzero_ps,
-        _mm512_setzero_si512, _mm512_storeu_ps,
-    };
-    const { assert!(POINTS == 16 && TILE == 16) };
-    let mut y = [[0.0f32; TILE]; ROWS];
-    // SAFETY: an `X86Fma<true>` exists only on a CPU with AVX-512 F, BW, VL and VNNI (see
-    // `dispatch`). Each integer load reads one `[Pair; 16]` (64 bytes), each float load one
-    // `[f32; 16]` and each store writes one `[f32; 16]`: all in bounds; `loadu`/`storeu` need
-    // no alignment.
-    unsafe {
-        let mut out = [_mm512_setzero_ps(); ROWS];
-        for group in quantized.groups {
-            let pairs = w.get(group.range()).unwrap_or(&[]);
-            let tile = quantized.pairs.get(group.range()).unwrap_or(&[]);
-            let mut acc = [[_mm512_setzero_si512(); ROWS]; 2];
-            let add_pair = |acc: &mut [__m512i; ROWS], wk: &WeightPairs, xk: &TilePairs| {
-                let points = _mm512_loadu_si512(xk.as_ptr().cast());
-                for (a, wr) in acc.iter_mut().zip(wk) {
-                    *a = _mm512_dpwssd_epi32(*a, _mm512_set1_epi32(pair_bits(*wr)), points);
-                }
-            };
-            let (w2, x2) = (pairs.chunks_exact(2), tile.chunks_exact(2));
-            let (w_last, x_last) = (w2.remainder(), x2.remainder());
-            for (wk, xk) in w2.zip(x2) {
-                add_pair(&mut acc[0], &wk[0], &xk[0]);
-                add_pair(&mut acc[1], &wk[1], &xk[1]);
-            }
-            for (wk, xk) in w_last.iter().zip(x_last) {
-                add_pair(&mut acc[0], wk, xk);
-            }
-            let scale = _mm512_loadu_ps(group.scales.as_ptr());
-            for ((o, &even), &odd) in out.iter_mut().zip(&acc[0]).zip(&acc[1]) {
-                let sums = _mm512_cvtepi32_ps(_mm512_add_epi32(even, odd));
-                *o = _mm512_add_ps(*o, _mm512_mul_ps(sums, scale));
-            }
-        }
-        for (row, o) in y.iter_mut().zip(&out) {
-            _mm512_storeu_ps(row.as_mut_ptr(), *o);
-        }
-    }
-    y
-}
-
-/// [`scaled_group_sums`] of two consecutive row blocks (`w` holds both, `pairs` each) with
-/// AVX-512 VNNI: each tile load serves both blocks' eight `vpdpwssd` (eight chains in flight
-/// without splitting the pairs), then both blocks are converted, scaled and added as
-/// [`scaled_group_sums_avx512`] does.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-#[allow(unsafe_code)]
-pub fn scaled_group_sums_pair_avx512(
-    _avx512: super::dispatch::X86Fma<true>,
-    w: &[WeightPairs],
-    pairs: usize,
-    quantized: QuantizedTile<'_>,
-) -> [OutputBlock; 2] {
+) -> [OutputBlock; B] {
     use core::arch::x86_64::{
         _mm512_add_ps, _mm512_cvtepi32_ps, _mm512_dpwssd_epi32, _mm512_loadu_ps,
         _mm512_loadu_si512, _mm512_mul_ps, _mm512_set1_epi32, _mm512_setzero_ps,
         _mm512_setzero_si512, _mm512_storeu_ps,
     };
     const { assert!(POINTS == 16 && TILE == 16) };
-    let (first, second) = w.split_at(pairs.min(w.len()));
-    let mut y = [[[0.0f32; TILE]; ROWS]; 2];
-    // SAFETY: as for `scaled_group_sums_avx512`: each integer load reads one `[Pair; 16]`, each
-    // float load one `[f32; 16]`, each store writes one `[f32; 16]`.
+    let mut y = [[[0.0f32; TILE]; ROWS]; B];
+    // SAFETY: an `X86Fma<true>` exists only on a CPU with AVX-512 F, BW, VL and VNNI (see
+    // `dispatch`). Each integer load reads one `[Pair; 16]` (64 bytes), each float load one
+    // `[f32; 16]` and each store writes one `[f32; 16]`: all in bounds; `loadu`/`storeu` need
+    // no alignment.
     unsafe {
-        let mut out = [[_mm512_setzero_ps(); ROWS]; 2];
+        let mut out = [[_mm512_setzero_ps(); ROWS]; B];
         for group in quantized.groups {
-            let blocks = [first, second].map(|b| b.get(group.range()).unwrap_or(&[]));
             let tile = quantized.pairs.get(group.range()).unwrap_or(&[]);
-            let mut acc = [[_mm512_setzero_si512(); ROWS]; 2];
-            for ((w0, w1), xk) in blocks[0].iter().zip(blocks[1]).zip(tile) {
+            let weights = blocks.map(|b| b.get(group.range()).unwrap_or(&[]));
+            let len = weights.iter().fold(tile.len(), |len, w| len.min(w.len()));
+            let mut acc = [[_mm512_setzero_si512(); ROWS]; B];
+            for (k, xk) in tile[..len].iter().enumerate() {
                 let points = _mm512_loadu_si512(xk.as_ptr().cast());
-                for (acc, wk) in acc.iter_mut().zip([w0, w1]) {
-                    for (a, wr) in acc.iter_mut().zip(wk) {
+                for (acc, w) in acc.iter_mut().zip(&weights) {
+                    for (a, wr) in acc.iter_mut().zip(&w[k]) {
                         *a = _mm512_dpwssd_epi32(*a, _mm512_set1_epi32(pair_bits(*wr)), points);
                     }
                 }

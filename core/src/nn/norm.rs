@@ -43,7 +43,7 @@ impl StatSum {
         }
     }
 
-    /// A running sum that has reached `sum` (the f64 sums of [`row_sums_avx2`]).
+    /// A running sum that has reached `sum` (the f64 sums of [`row_sums_x86`]).
     #[cfg(all(target_arch = "x86_64", not(feature = "f32-statistics")))]
     fn of_f64(sum: f64) -> Self {
         StatSum { sum }
@@ -261,72 +261,55 @@ fn continued_row_sums<const G: usize>(
     sums
 }
 
-/// [`row_sums`] of `G` = sixteen rows (others take [`row_sums`]' path) with AVX2, the same bits: each point's values (or squared
-/// deviations) as two vectors (transposed blocks of 8 points), each half widened to f64 and added to
-/// four vectors of running sums, point after point (each lane's sum adds its row's values in
-/// order, as [`StatSum::add`]). The strided scalar loads of [`row_sums`] cost about three
-/// instructions a value. The last `n % 8` points continue the blocks' sums as [`row_sums`]
-/// does; rows shorter than `n` take [`row_sums`]' path.
+/// [`row_sums`] of `G` rows with x86-64 vectors, the same bits: sixteen rows with AVX2, or
+/// thirty-two with the AVX-512 token (other counts take [`row_sums`]' path). Each point's
+/// values (or squared deviations) are `G / 8` vectors (transposed blocks of 8 points), widened
+/// to f64 (by halves to four 4-lane sums with AVX2; whole, `vcvtps2pd` to 512 bits, to four
+/// 8-lane sums with AVX-512) and added point after point (each lane's sum adds its row's
+/// values in order, as [`StatSum::add`]). The strided scalar loads of [`row_sums`] cost about
+/// three instructions a value. The last `n % 8` points continue the blocks' sums as
+/// [`row_sums`] does; rows shorter than `n` take [`row_sums`]' path.
 #[cfg(all(target_arch = "x86_64", not(feature = "f32-statistics")))]
 #[inline(always)]
 #[allow(unsafe_code)]
-pub fn row_sums_avx2<const G: usize>(
-    avx2: super::dispatch::X86Fma,
+pub fn row_sums_x86<const G: usize, const AVX512: bool>(
+    fma: super::dispatch::X86Fma<AVX512>,
     pass: RowPass<'_, G>,
 ) -> [StatSum; G] {
     use core::arch::x86_64::{
-        __m256d, _mm256_add_pd, _mm256_castps256_ps128, _mm256_cvtps_pd, _mm256_extractf128_ps,
-        _mm256_setzero_pd, _mm256_storeu_pd,
+        _mm256_add_pd, _mm256_castps256_ps128, _mm256_cvtps_pd, _mm256_extractf128_ps,
+        _mm256_setzero_pd, _mm256_storeu_pd, _mm512_add_pd, _mm512_cvtps_pd, _mm512_setzero_pd,
+        _mm512_storeu_pd,
     };
-    if G != 16 || pass.rows.iter().any(|r| r.len() < pass.n) {
+    let wide = G == 32 && AVX512;
+    if !(G == 16 || wide) || pass.rows.iter().any(|r| r.len() < pass.n) {
         return row_sums(pass);
     }
     let mut sums = [0.0f64; G];
-    // SAFETY: an `X86Fma` exists only on a CPU with AVX2 (see `dispatch`); the rows hold `n`
-    // values (checked above); each store writes 4 `f64` into `sums` (16) at 0, 4, 8 or 12;
+    // SAFETY: an `X86Fma` exists only on a CPU with AVX2, with `AVX512` only on one with
+    // AVX-512 F (see `dispatch`); the rows hold `n` values (checked above); the stores write
+    // 4 `f64` into `sums` (16) at 0, 4, 8 or 12, or 8 into `sums` (32) at 0, 8, 16 or 24;
     // `storeu` needs no alignment.
     unsafe {
-        let mut acc: [__m256d; 4] = [_mm256_setzero_pd(); 4];
-        point_vectors(avx2, pass, |h, v| {
-            let low = _mm256_cvtps_pd(_mm256_castps256_ps128(v));
-            let high = _mm256_cvtps_pd(_mm256_extractf128_ps::<1>(v));
-            acc[2 * h] = _mm256_add_pd(acc[2 * h], low);
-            acc[2 * h + 1] = _mm256_add_pd(acc[2 * h + 1], high);
-        });
-        for (q, a) in acc.iter().enumerate() {
-            _mm256_storeu_pd(sums.as_mut_ptr().add(4 * q), *a);
-        }
-    }
-    continued_row_sums(sums.map(StatSum::of_f64), pass, pass.n / 8 * 8)
-}
-
-/// [`row_sums`] of `G` = thirty-two rows (others take [`row_sums`]' path) with AVX-512, the same bits: as [`row_sums_avx2`], each
-/// point's eight-row vectors widened to f64 whole (`vcvtps2pd` to 512 bits) and added to four
-/// 8-lane vectors of running sums.
-#[cfg(all(target_arch = "x86_64", not(feature = "f32-statistics")))]
-#[inline(always)]
-#[allow(unsafe_code)]
-pub fn row_sums_avx512<const G: usize>(
-    avx512: super::dispatch::X86Fma<true>,
-    pass: RowPass<'_, G>,
-) -> [StatSum; G] {
-    use core::arch::x86_64::{
-        __m512d, _mm512_add_pd, _mm512_cvtps_pd, _mm512_setzero_pd, _mm512_storeu_pd,
-    };
-    if G != 32 || pass.rows.iter().any(|r| r.len() < pass.n) {
-        return row_sums(pass);
-    }
-    let mut sums = [0.0f64; G];
-    // SAFETY: an `X86Fma<true>` exists only on a CPU with AVX-512 F (see `dispatch`); the
-    // rows hold `n` values (checked above); each store writes 8 `f64` into `sums` (32) at 0,
-    // 8, 16 or 24; `storeu` needs no alignment.
-    unsafe {
-        let mut acc: [__m512d; 4] = [_mm512_setzero_pd(); 4];
-        point_vectors(avx512.avx2(), pass, |h, v| {
-            acc[h] = _mm512_add_pd(acc[h], _mm512_cvtps_pd(v));
-        });
-        for (q, a) in acc.iter().enumerate() {
-            _mm512_storeu_pd(sums.as_mut_ptr().add(8 * q), *a);
+        if wide {
+            let mut acc = [_mm512_setzero_pd(); 4];
+            point_vectors(fma.avx2(), pass, |h, v| {
+                acc[h] = _mm512_add_pd(acc[h], _mm512_cvtps_pd(v));
+            });
+            for (q, a) in acc.iter().enumerate() {
+                _mm512_storeu_pd(sums.as_mut_ptr().add(8 * q), *a);
+            }
+        } else {
+            let mut acc = [_mm256_setzero_pd(); 4];
+            point_vectors(fma.avx2(), pass, |h, v| {
+                let low = _mm256_cvtps_pd(_mm256_castps256_ps128(v));
+                let high = _mm256_cvtps_pd(_mm256_extractf128_ps::<1>(v));
+                acc[2 * h] = _mm256_add_pd(acc[2 * h], low);
+                acc[2 * h + 1] = _mm256_add_pd(acc[2 * h + 1], high);
+            });
+            for (q, a) in acc.iter().enumerate() {
+                _mm256_storeu_pd(sums.as_mut_ptr().add(4 * q), *a);
+            }
         }
     }
     continued_row_sums(sums.map(StatSum::of_f64), pass, pass.n / 8 * 8)
@@ -488,10 +471,10 @@ mod tests {
         let Some(avx2) = X86Fma::detect() else {
             return;
         };
-        vector_sums_are_the_portable_sums::<16>(|pass: RowPass<'_, 16>| row_sums_avx2(avx2, pass));
+        vector_sums_are_the_portable_sums::<16>(|pass: RowPass<'_, 16>| row_sums_x86(avx2, pass));
         if let Some(avx512) = X86Fma::detect_avx512() {
             vector_sums_are_the_portable_sums::<32>(|pass: RowPass<'_, 32>| {
-                row_sums_avx512(avx512, pass)
+                row_sums_x86(avx512, pass)
             });
         }
     }
