@@ -55,7 +55,7 @@ mod sizes {
     /// Most points of a short row (2 KiB of `f32`).
     pub const SHORT_ROW_POINTS: usize = 512;
     /// [`SHORT_ROW_CHANNELS`] where the CPU has 32 vector registers (AVX-512): thirty-two
-    /// f64 sums are eight chains of adds in flight.
+    /// f64 sums are four chains of 8-lane adds in flight (sixteen were four of 4 lanes).
     pub const WIDE_SHORT_ROW_CHANNELS: usize = 32;
 }
 
