@@ -47,10 +47,10 @@ struct KnnGraph<'a> {
 }
 
 /// Candidate points whose distances are computed together (one vectorised loop), then
-/// skipped [`DISTANCE_LANES`] at a time while none is closer than the `k + 1`-th best.
+/// compared with the `k + 1`-th best [`DISTANCE_LANES`] at a time.
 const DISTANCE_BLOCK: usize = 64;
-/// Distances compared with the current bound at once.
-const DISTANCE_LANES: usize = 8;
+/// Distances compared with the current bound at once (one bit each of a mask).
+const DISTANCE_LANES: usize = 16;
 
 impl Kernel<()> for KnnGraph<'_> {
     #[inline(always)]
@@ -64,12 +64,12 @@ impl Kernel<()> for KnnGraph<'_> {
                 squared_distances(a, candidates, distances);
                 let lanes = distances.chunks(DISTANCE_LANES);
                 for (lane, chunk) in lanes.enumerate() {
-                    if nearest.beats_none(chunk) {
-                        continue;
-                    }
                     let first = block * DISTANCE_BLOCK + lane * DISTANCE_LANES;
-                    for (t, &dist) in chunk.iter().enumerate() {
-                        nearest.offer(dist, (first + t) as u16);
+                    let mut closer = nearest.closer(chunk);
+                    while closer != 0 {
+                        let t = closer.trailing_zeros() as usize;
+                        closer &= closer - 1;
+                        nearest.offer(chunk[t], (first + t) as u16);
                     }
                 }
             }
@@ -108,10 +108,18 @@ impl Nearest {
         }
     }
 
-    /// Whether the list is full and none of `distances` would enter it.
+    /// A mask of the `distances` (at most 32) that would enter the list as it is: bit `t`
+    /// for `distances[t]` (all of them while it is not full). Only these are offered, in
+    /// order (each offer checks again against the list it finds), so that the few entries
+    /// cost a branch each instead of every distance.
     #[inline(always)]
-    fn beats_none(&self, distances: &[f32]) -> bool {
-        self.count == self.k + 1 && distances.iter().all(|&d| d >= self.best[self.k].0)
+    fn closer(&self, distances: &[f32]) -> u32 {
+        if self.count < self.k + 1 {
+            return u32::MAX >> (32 - distances.len().clamp(1, 32));
+        }
+        let bound = self.best[self.k].0;
+        let bits = distances.iter().enumerate();
+        bits.fold(0, |mask, (t, &d)| mask | u32::from(d < bound) << t)
     }
 
     /// Inserts point `j` at distance `dist` where it belongs, if it does.
@@ -385,13 +393,18 @@ impl EdgeChannels<'_, '_> {
             point_major
         };
         let neighbour = |j: u16| -> [f32; G] {
-            let at = usize::from(j) * G;
-            match terms.get(at..at + G) {
-                Some(lanes) => core::array::from_fn(|c| lanes[c]),
-                None => [0.0; G],
-            }
+            let lanes = terms.get(usize::from(j) * G..);
+            lanes
+                .and_then(|lanes| lanes.first_chunk::<G>())
+                .map_or([0.0; G], |lanes| *lanes)
         };
-        let centre = |i: usize| -> [f32; G] { core::array::from_fn(|c| a[c * n + i]) };
+        let centre = |i: usize| -> [f32; G] {
+            let mut x = [0.0; G];
+            for (xc, row) in x.iter_mut().zip(a.chunks_exact(n)) {
+                *xc = row[i];
+            }
+            x
+        };
         let mut sums = [StatSum::default(); G];
         let mut deviations = [StatSum::default(); G];
         let kept = edges.get_mut(..n * k * G).filter(|_| k > 0);
@@ -912,6 +925,48 @@ fn lane_sum(values: &[f32]) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The graph equals a full sort of each point's distances by (distance, index), on
+    /// sets of every size around the distance blocks, with repeated points (ties) and
+    /// far-away points.
+    #[test]
+    fn knn_graph_equals_a_full_sort() {
+        extern crate std;
+        use std::vec::Vec;
+        let mut state = 7u64;
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 40) as f32 / (1u64 << 24) as f32 - 0.5
+        };
+        for n in [2, 3, 11, 16, 17, 63, 64, 65, 130, 300] {
+            let mut points: Vec<[f32; 2]> = (0..n).map(|_| [next(), next()]).collect();
+            for i in (0..n).step_by(7) {
+                points[n - 1 - i / 7] = points[i];
+            }
+            points[n / 2] = [1e20, -1e20];
+            for knn in [1, 4, 10, MAX_KNN] {
+                let k = neighbour_count(knn, n);
+                let mut graph = std::vec![[0u16; MAX_KNN]; n];
+                knn_graph(&points, k, &mut graph);
+                for (i, a) in points.iter().enumerate() {
+                    let mut d = [0.0f32; 1];
+                    let mut order: Vec<(f32, usize)> = points
+                        .iter()
+                        .enumerate()
+                        .map(|(j, b)| {
+                            squared_distances(a, core::slice::from_ref(b), &mut d);
+                            (d[0], j)
+                        })
+                        .collect();
+                    order.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
+                    let expected: Vec<u16> = order[1..=k].iter().map(|&(_, j)| j as u16).collect();
+                    assert_eq!(graph[i][..k], expected[..], "n {n}, k {k}, point {i}");
+                }
+            }
+        }
+    }
 
     #[test]
     fn knn_graph_on_a_line_with_a_tie() {

@@ -7,7 +7,7 @@
 //! The transport plan `P = exp((-C + u_i + v_j) / eps)` is never stored either: it is
 //! evaluated on demand from the cost and the potentials `u`, `v`.
 
-use crate::nn::dispatch::{f16_to_f32, with_fma, Fma, Kernel, Portable};
+use crate::nn::dispatch::{f16_to_f32, with_fma, Fma, Kernel};
 use crate::nn::linear::{linear_with, WeightRows};
 use crate::nn::{exp, sqrt, Input, COL_BLOCK};
 
@@ -225,9 +225,15 @@ impl<S: PlanScalar> Transport<'_, S> {
     /// [`Transport::log_plan`] of the real columns of row `i < n3`, into `out` (`n2`
     /// values), through `buf` (`n2` values: the row's costs as f32).
     #[inline(always)]
-    pub fn log_plan_row<'o>(&self, i: usize, buf: &mut [f32], out: &'o mut [f32]) -> &'o [f32] {
+    pub fn log_plan_row<'o, F: Fma>(
+        &self,
+        fma: F,
+        i: usize,
+        buf: &mut [f32],
+        out: &'o mut [f32],
+    ) -> &'o [f32] {
         let n2 = self.n2;
-        let costs = S::row_f32(Portable, &self.cost[i * n2..(i + 1) * n2], buf);
+        let costs = S::row_f32(fma, &self.cost[i * n2..(i + 1) * n2], buf);
         let (ui, inv_eps) = (self.u[i], 1.0 / self.params.eps);
         for ((o, &c), &vj) in out[..n2].iter_mut().zip(costs).zip(self.v) {
             *o = ((-c + ui) + vj) * inv_eps;
@@ -636,8 +642,47 @@ const TIE_WINDOW: f64 = 1e-5;
 /// `expf(M_ij)` finds it, in two passes over the rows: the largest log `M_ij` per row and
 /// column, then `expf` of the entries within [`TIE_WINDOW`] of it (all of them where the
 /// largest plan value is not a normal f32, so underflowed or overflowed ties are decided
-/// as the scan decides them). `scratch` holds `4 n2` values.
+/// as the scan decides them). `scratch` holds `4 n2` values. Compiled for the widest
+/// vectors the CPU has (comparisons and plain f32 arithmetic: the same bits on any CPU).
 fn plan_argmaxima<S: PlanScalar>(
+    t: &Transport<'_, S>,
+    nn12: &mut [u16],
+    nn21: &mut [u16],
+    scratch: &mut [f32],
+) {
+    with_fma(PlanArgmaxima {
+        t,
+        nn12,
+        nn21,
+        scratch,
+    });
+}
+
+/// The arguments of one [`plan_argmaxima`] call.
+struct PlanArgmaxima<'a, 't, S: PlanScalar> {
+    t: &'a Transport<'t, S>,
+    nn12: &'a mut [u16],
+    nn21: &'a mut [u16],
+    scratch: &'a mut [f32],
+}
+
+impl<S: PlanScalar> Kernel<()> for PlanArgmaxima<'_, '_, S> {
+    #[inline(always)]
+    fn run<F: Fma>(self, fma: F) {
+        let PlanArgmaxima {
+            t,
+            nn12,
+            nn21,
+            scratch,
+        } = self;
+        plan_argmaxima_vectorised(fma, t, nn12, nn21, scratch);
+    }
+}
+
+/// [`plan_argmaxima`], compiled into the caller.
+#[inline(always)]
+fn plan_argmaxima_vectorised<F: Fma, S: PlanScalar>(
+    fma: F,
     t: &Transport<'_, S>,
     nn12: &mut [u16],
     nn21: &mut [u16],
@@ -649,7 +694,7 @@ fn plan_argmaxima<S: PlanScalar>(
     let (buf, logs) = rest.split_at_mut(n2);
     column_floor.fill(f32::NEG_INFINITY);
     for i in 0..t.n3 {
-        let row = t.log_plan_row(i, buf, logs);
+        let row = t.log_plan_row(fma, i, buf, logs);
         for (m, &x) in column_floor.iter_mut().zip(row) {
             *m = if x > *m { x } else { *m };
         }
@@ -660,7 +705,7 @@ fn plan_argmaxima<S: PlanScalar>(
     column_best.fill(f32::NEG_INFINITY);
     nn21.fill(0);
     for (i, own) in nn12.iter_mut().enumerate() {
-        let row = t.log_plan_row(i, buf, logs);
+        let row = t.log_plan_row(fma, i, buf, logs);
         let row_max = row
             .iter()
             .fold(f32::NEG_INFINITY, |m, &x| if x > m { x } else { m });

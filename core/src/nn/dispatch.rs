@@ -12,7 +12,9 @@
 use core::sync::atomic::{AtomicU8, Ordering};
 
 use super::fma::mul_add;
-use super::integer::{self, BlockSums, OutputBlock, QuantizedTile, TilePairs, WeightPairs};
+use super::integer::{
+    self, BlockAffine, BlockSums, OutputBlock, QuantizedTile, TilePairs, WeightPairs,
+};
 use super::norm::{self, RowPass, StatSum};
 use super::transpose;
 
@@ -71,11 +73,16 @@ pub trait Fma: Copy {
     }
 
     /// [`integer::scaled_group_sums`]: one row block of the integer kernel over a tile,
-    /// before the row scales (AVX2 on x86-64 keeps the outputs in registers; the integer
-    /// sums are exact and the f32 steps the same, so every path gives the same bits).
+    /// with the rows' scales and biases (AVX2 on x86-64 keeps the outputs in registers; the
+    /// integer sums are exact and the f32 steps the same, so every path gives the same bits).
     #[inline(always)]
-    fn scaled_group_sums(self, w: &[WeightPairs], tile: QuantizedTile<'_>) -> OutputBlock {
-        integer::scaled_group_sums(self, w, tile)
+    fn scaled_group_sums(
+        self,
+        w: &[WeightPairs],
+        affine: &BlockAffine,
+        tile: QuantizedTile<'_>,
+    ) -> OutputBlock {
+        integer::scaled_group_sums(self, w, affine, tile)
     }
 
     /// [`Fma::scaled_group_sums`] of two consecutive row blocks (`w` holds both, `pairs`
@@ -86,9 +93,10 @@ pub trait Fma: Copy {
         self,
         w: &[WeightPairs],
         pairs: usize,
+        affine: [&BlockAffine; 2],
         tile: QuantizedTile<'_>,
     ) -> [OutputBlock; 2] {
-        integer::scaled_group_sums_pair(self, w, pairs, tile)
+        integer::scaled_group_sums_pair(self, w, pairs, affine, tile)
     }
 
     /// [`integer::interleave_pairs`]: int8 weight rows laid out as the integer kernel's
@@ -376,12 +384,17 @@ impl<const AVX512: bool> Fma for X86Fma<AVX512> {
     }
 
     #[inline(always)]
-    fn scaled_group_sums(self, w: &[WeightPairs], tile: QuantizedTile<'_>) -> OutputBlock {
+    fn scaled_group_sums(
+        self,
+        w: &[WeightPairs],
+        affine: &BlockAffine,
+        tile: QuantizedTile<'_>,
+    ) -> OutputBlock {
         if let Some(avx512) = self.avx512() {
-            let [y] = integer::scaled_group_sums_avx512(avx512, [w], tile);
+            let [y] = integer::scaled_group_sums_avx512(avx512, [w], [affine], tile);
             return y;
         }
-        integer::scaled_group_sums_avx2(self.avx2(), w, tile)
+        integer::scaled_group_sums_avx2(self.avx2(), w, affine, tile)
     }
 
     #[inline(always)]
@@ -389,14 +402,15 @@ impl<const AVX512: bool> Fma for X86Fma<AVX512> {
         self,
         w: &[WeightPairs],
         pairs: usize,
+        affine: [&BlockAffine; 2],
         tile: QuantizedTile<'_>,
     ) -> [OutputBlock; 2] {
         match self.avx512() {
             Some(avx512) => {
                 let (first, second) = w.split_at(pairs.min(w.len()));
-                integer::scaled_group_sums_avx512(avx512, [first, second], tile)
+                integer::scaled_group_sums_avx512(avx512, [first, second], affine, tile)
             }
-            None => integer::scaled_group_sums_pair(self, w, pairs, tile),
+            None => integer::scaled_group_sums_pair(self, w, pairs, affine, tile),
         }
     }
 

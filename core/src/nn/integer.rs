@@ -65,8 +65,7 @@ pub fn linear_int8<F: Fma, W: WeightRows>(
     let pairs = layout.pairs();
     let panel_len = (PANEL_PAIRS / pairs.max(1) / ROWS * ROWS).clamp(ROWS, PANEL_MAX_ROWS);
     let mut panel = WordAligned([[[0i16; 2]; ROWS]; PANEL_PAIRS / ROWS]);
-    let mut row_scale = [0.0f32; PANEL_MAX_ROWS];
-    let mut bias = [0.0f32; PANEL_MAX_ROWS];
+    let mut affine = [BlockAffine::ZERO; PANEL_MAX_ROWS / ROWS];
     let mut tile = WordAligned([[[0i16; 2]; TILE]; MAX_PAIRS]);
     let mut groups = [ScaledGroup::EMPTY; MAX_GROUPS];
     let n = input.points();
@@ -74,7 +73,7 @@ pub fn linear_int8<F: Fma, W: WeightRows>(
     while p0 < rows.end {
         let count = panel_len.min(rows.end - p0);
         let panel_rows = PanelRows { p0, count, pairs };
-        panel_rows.unpack(fma, w, &layout, &mut panel.0, &mut row_scale, &mut bias);
+        panel_rows.unpack(fma, w, &layout, &mut panel.0, &mut affine);
         let mut i0 = 0;
         while i0 < n {
             let len = TILE.min(n - i0);
@@ -92,25 +91,23 @@ pub fn linear_int8<F: Fma, W: WeightRows>(
                 pairs: &tile.0,
                 groups: &groups[..group_count],
             };
-            let mut emit_block = |r: usize, y: &OutputBlock| {
-                for (r, yr) in (r..count).zip(y) {
-                    let (scale, offset) = (row_scale[r], bias[r]);
-                    let values: [f32; TILE] = core::array::from_fn(|t| yr[t] * scale + offset);
-                    emit(p0 + r, i0, &values[..len]);
-                }
-            };
+            let points = i0..i0 + len;
             let mut r = 0;
             while r < count {
                 let block = r / ROWS * pairs;
+                let at = r / ROWS;
                 if F::WIDE_REGISTERS && r + ROWS < count {
                     let blocks = &panel.0[block..block + 2 * pairs];
-                    let [first, second] = fma.scaled_group_sums_pair(blocks, pairs, quantized);
-                    emit_block(r, &first);
-                    emit_block(r + ROWS, &second);
+                    let affine = [&affine[at], &affine[at + 1]];
+                    let [first, second] =
+                        fma.scaled_group_sums_pair(blocks, pairs, affine, quantized);
+                    panel_rows.emit(r, &first, &points, &mut emit);
+                    panel_rows.emit(r + ROWS, &second, &points, &mut emit);
                     r += 2 * ROWS;
                 } else {
-                    let y = fma.scaled_group_sums(&panel.0[block..block + pairs], quantized);
-                    emit_block(r, &y);
+                    let w = &panel.0[block..block + pairs];
+                    let y = fma.scaled_group_sums(w, &affine[at], quantized);
+                    panel_rows.emit(r, &y, &points, &mut emit);
                     r += ROWS;
                 }
             }
@@ -163,13 +160,14 @@ const MAX_PAIRS: usize = MAX_INPUT / 2 + 2;
 /// partial last group.
 const MAX_GROUPS: usize = MAX_INPUT / GROUP + 3;
 
-/// The outputs of one row block over a tile before the row scales: for each group, in
-/// order, its exact sums ([`Fma::pair_sums`]) times its point scales, added in f32 to
-/// outputs that start at zero (`y += sum as f32 * scale`).
+/// The outputs of one row block over a tile: for each group, in order, its exact sums
+/// ([`Fma::pair_sums`]) times its point scales, added in f32 to outputs that start at zero
+/// (`y += sum as f32 * scale`), then each row's `y * scale + bias` (`affine`).
 #[inline(always)]
 pub fn scaled_group_sums<F: Fma>(
     fma: F,
     w: &[WeightPairs],
+    affine: &BlockAffine,
     tile: QuantizedTile<'_>,
 ) -> OutputBlock {
     let mut y = [[0.0f32; TILE]; ROWS];
@@ -185,6 +183,7 @@ pub fn scaled_group_sums<F: Fma>(
             }
         }
     }
+    affine.apply(&mut y);
     y
 }
 
@@ -194,12 +193,13 @@ pub fn scaled_group_sums_pair<F: Fma>(
     fma: F,
     w: &[WeightPairs],
     pairs: usize,
+    affine: [&BlockAffine; 2],
     tile: QuantizedTile<'_>,
 ) -> [OutputBlock; 2] {
     let (first, second) = w.split_at(pairs.min(w.len()));
     [
-        fma.scaled_group_sums(first, tile),
-        fma.scaled_group_sums(second, tile),
+        fma.scaled_group_sums(first, affine[0], tile),
+        fma.scaled_group_sums(second, affine[1], tile),
     ]
 }
 
@@ -266,6 +266,32 @@ struct Group {
     pairs: core::ops::Range<usize>,
 }
 
+/// The scale and bias of each row of a register block: output `y * scale + bias`.
+#[derive(Clone, Copy)]
+pub struct BlockAffine {
+    /// Each row's scale.
+    pub scale: [f32; ROWS],
+    /// Each row's bias.
+    pub bias: [f32; ROWS],
+}
+
+impl BlockAffine {
+    const ZERO: Self = BlockAffine {
+        scale: [0.0; ROWS],
+        bias: [0.0; ROWS],
+    };
+
+    /// `y * scale + bias` of each row.
+    #[inline(always)]
+    fn apply(&self, y: &mut OutputBlock) {
+        for ((yr, &scale), &bias) in y.iter_mut().zip(&self.scale).zip(&self.bias) {
+            for yt in yr.iter_mut() {
+                *yt = *yt * scale + bias;
+            }
+        }
+    }
+}
+
 /// Rows `p0..p0 + count` of a panel of `pairs` pairs per row.
 struct PanelRows {
     p0: usize,
@@ -285,8 +311,7 @@ impl PanelRows {
         w: &W,
         layout: &PairLayout,
         panel: &mut [WeightPairs],
-        row_scale: &mut [f32],
-        bias: &mut [f32],
+        affine: &mut [BlockAffine],
     ) {
         let pairs = self.pairs;
         for r0 in (0..self.count).step_by(ROWS) {
@@ -294,8 +319,8 @@ impl PanelRows {
             let mut bytes: [&[u8]; ROWS] = core::array::from_fn(|lane| {
                 let r = r0 + lane;
                 if r < self.count {
-                    row_scale[r] = w.scale(self.p0 + r);
-                    bias[r] = w.bias(self.p0 + r);
+                    affine[r0 / ROWS].scale[lane] = w.scale(self.p0 + r);
+                    affine[r0 / ROWS].bias[lane] = w.bias(self.p0 + r);
                     w.int8_row(self.p0 + r).unwrap_or(&[])
                 } else {
                     &[]
@@ -321,6 +346,22 @@ impl PanelRows {
                     }
                 }
             }
+        }
+    }
+
+    /// Emits the outputs `y` of the row block of panel rows `r..` (those below `count`) at
+    /// `points`. A function, not a closure, so that it is inlined into the caller's kernel
+    /// set (an outlined closure runs on the baseline instructions).
+    #[inline(always)]
+    fn emit(
+        &self,
+        r: usize,
+        y: &OutputBlock,
+        points: &core::ops::Range<usize>,
+        emit: &mut impl FnMut(usize, usize, &[f32]),
+    ) {
+        for (r, yr) in (r..self.count).zip(y) {
+            emit(self.p0 + r, points.start, &yr[..points.len()]);
         }
     }
 }
@@ -592,12 +633,13 @@ pub fn block_sums_dsp(w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums
 pub fn scaled_group_sums_avx2(
     _avx2: super::dispatch::X86Fma,
     w: &[WeightPairs],
+    affine: &BlockAffine,
     quantized: QuantizedTile<'_>,
 ) -> OutputBlock {
     use core::arch::x86_64::{
         __m256i, _mm256_add_epi32, _mm256_add_ps, _mm256_cvtepi32_ps, _mm256_loadu_ps,
-        _mm256_loadu_si256, _mm256_madd_epi16, _mm256_mul_ps, _mm256_set1_epi32, _mm256_setzero_ps,
-        _mm256_setzero_si256, _mm256_storeu_ps,
+        _mm256_loadu_si256, _mm256_madd_epi16, _mm256_mul_ps, _mm256_set1_epi32, _mm256_set1_ps,
+        _mm256_setzero_ps, _mm256_setzero_si256, _mm256_storeu_ps,
     };
     const HALF: usize = TILE / 2;
     const { assert!(POINTS == 16 && TILE == 16) };
@@ -629,9 +671,13 @@ pub fn scaled_group_sums_avx2(
                 }
             }
         }
-        for (row, o) in y.iter_mut().zip(&out) {
-            for (at, lane) in [0, HALF].into_iter().zip(o) {
-                _mm256_storeu_ps(row.as_mut_ptr().add(at), *lane);
+        for (((row, o), &scale), &bias) in
+            y.iter_mut().zip(&out).zip(&affine.scale).zip(&affine.bias)
+        {
+            let (scale, bias) = (_mm256_set1_ps(scale), _mm256_set1_ps(bias));
+            for (at, &lane) in [0, HALF].into_iter().zip(o) {
+                let lane = _mm256_add_ps(_mm256_mul_ps(lane, scale), bias);
+                _mm256_storeu_ps(row.as_mut_ptr().add(at), lane);
             }
         }
     }
@@ -650,11 +696,12 @@ pub fn scaled_group_sums_avx2(
 pub fn scaled_group_sums_avx512<const B: usize>(
     _avx512: super::dispatch::X86Fma<true>,
     blocks: [&[WeightPairs]; B],
+    affine: [&BlockAffine; B],
     quantized: QuantizedTile<'_>,
 ) -> [OutputBlock; B] {
     use core::arch::x86_64::{
         _mm512_add_ps, _mm512_cvtepi32_ps, _mm512_dpwssd_epi32, _mm512_loadu_ps,
-        _mm512_loadu_si512, _mm512_mul_ps, _mm512_set1_epi32, _mm512_setzero_ps,
+        _mm512_loadu_si512, _mm512_mul_ps, _mm512_set1_epi32, _mm512_set1_ps, _mm512_setzero_ps,
         _mm512_setzero_si512, _mm512_storeu_ps,
     };
     const { assert!(POINTS == 16 && TILE == 16) };
@@ -685,9 +732,14 @@ pub fn scaled_group_sums_avx512<const B: usize>(
                 }
             }
         }
-        for (y, out) in y.iter_mut().zip(&out) {
-            for (row, o) in y.iter_mut().zip(out) {
-                _mm512_storeu_ps(row.as_mut_ptr(), *o);
+        for ((y, out), affine) in y.iter_mut().zip(&out).zip(affine) {
+            let rows = y.iter_mut().zip(out).zip(&affine.scale).zip(&affine.bias);
+            for (((row, &o), &scale), &bias) in rows {
+                let o = _mm512_add_ps(
+                    _mm512_mul_ps(o, _mm512_set1_ps(scale)),
+                    _mm512_set1_ps(bias),
+                );
+                _mm512_storeu_ps(row.as_mut_ptr(), o);
             }
         }
     }
