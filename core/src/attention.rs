@@ -408,13 +408,17 @@ impl EdgeChannels<'_, '_> {
         let mut sums = [StatSum::default(); G];
         let mut deviations = [StatSum::default(); G];
         let kept = edges.get_mut(..n * k * G).filter(|_| k > 0);
-        let point_maxima = maxima.chunks_exact_mut(G);
         match kept {
             Some(edges) => {
+                // The centre terms point by point, where each point's maxima go once its
+                // edges are done (a gather of `G` rows per point otherwise).
+                fma.point_major::<G>(a, n, maxima);
                 let points = graph.iter().zip(edges.chunks_exact_mut(k * G));
-                for (i, ((neighbours, point_edges), maxima)) in points.zip(point_maxima).enumerate()
-                {
-                    let ai = centre(i);
+                for ((neighbours, point_edges), maxima) in points.zip(maxima.chunks_exact_mut(G)) {
+                    let ai: [f32; G] = match maxima.first_chunk::<G>() {
+                        Some(centre) => *centre,
+                        None => [0.0; G],
+                    };
                     let mut best = [f32::NEG_INFINITY; G];
                     for (&j, e) in neighbours[..k].iter().zip(point_edges.chunks_exact_mut(G)) {
                         let bj = neighbour(j);
@@ -432,6 +436,7 @@ impl EdgeChannels<'_, '_> {
                 }
             }
             None => {
+                let point_maxima = maxima.chunks_exact_mut(G);
                 for (i, (neighbours, maxima)) in graph.iter().zip(point_maxima).enumerate() {
                     let ai = centre(i);
                     let mut best = [f32::NEG_INFINITY; G];
