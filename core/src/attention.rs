@@ -386,12 +386,10 @@ impl EdgeChannels<'_, '_> {
         if n == 0 {
             return;
         }
-        let terms: &[f32] = if G == 1 {
-            b
-        } else {
+        if G > 1 {
             fma.point_major::<G>(b, n, point_major);
-            point_major
-        };
+        }
+        let terms: &[f32] = if G == 1 { b } else { point_major };
         let neighbour = |j: u16| -> [f32; G] {
             let lanes = terms.get(usize::from(j) * G..);
             lanes
@@ -458,10 +456,21 @@ impl EdgeChannels<'_, '_> {
                 }
             }
         }
-        for (c, row) in a.chunks_exact_mut(n).enumerate() {
+        // The maxima channel by channel (one lane per point is a gather otherwise).
+        let maxima: &[f32] = if G == 1 {
+            maxima
+        } else {
+            fma.channel_major::<G>(maxima, n, point_major);
+            point_major
+        };
+        for ((c, row), best) in a
+            .chunks_exact_mut(n)
+            .enumerate()
+            .zip(maxima.chunks_exact(n))
+        {
             let normalizer = Moments::of(sums[c], n * k).normalizer(&deviations[c]);
-            for (ai, best) in row.iter_mut().zip(maxima.chunks_exact(G)) {
-                *ai = leaky_relu(normalizer.apply_with(fma, *ai + best[c]));
+            for (ai, &best) in row.iter_mut().zip(best) {
+                *ai = leaky_relu(normalizer.apply_with(fma, *ai + best));
             }
         }
     }
@@ -814,9 +823,7 @@ fn message_tiles<F: Fma, const L: usize>(
             let tile = message_tile::<F, true, L>(fma, shape, h, p, v, j0, len, first, width);
             for (a, row) in acc.iter_mut().zip(&tile) {
                 if let Some(lanes) = a[first..].first_chunk_mut::<L>() {
-                    for (x, &y) in lanes.iter_mut().zip(row) {
-                        *x += y;
-                    }
+                    fma.add_lanes(row, lanes);
                 }
             }
         } else {

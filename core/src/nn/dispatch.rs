@@ -56,6 +56,14 @@ pub trait Fma: Copy {
         add_products(w, x, acc);
     }
 
+    /// `acc[t] = acc[t] + x[t]` in every lane (attention's messages added block after
+    /// block). The default is a loop; x86-64 adds 8 or 16 lanes explicitly (the compiler's
+    /// own choice there vectorises across the tile's rows, with gathers and scatters).
+    #[inline(always)]
+    fn add_lanes<const L: usize>(self, x: &[f32; L], acc: &mut [f32; L]) {
+        add_lanes(x, acc);
+    }
+
     /// The integer kernel's register block at point `p` of a tile
     /// ([`integer::block_sums`], with NEON on AArch64 and `smlad` on ARMv7E-M; exact, so every implementation gives
     /// the same sums).
@@ -123,6 +131,13 @@ pub trait Fma: Copy {
         transpose::point_major::<G>(rows, n, out);
     }
 
+    /// [`transpose::channel_major`]: `n` points of `G` lanes laid out as `G` channel-major
+    /// rows (AVX2 8 x 8 transposes on x86-64; a pure permutation, the same values).
+    #[inline(always)]
+    fn channel_major<const G: usize>(self, points: &[f32], n: usize, out: &mut [f32]) {
+        transpose::channel_major::<G>(points, n, out);
+    }
+
     /// `out[i] = bits[i]` read as an f16 (`out` as long as `bits`), exact for every finite
     /// value ([`f16_to_f32`]; F16C's `vcvtph2ps` on x86-64).
     #[inline(always)]
@@ -155,6 +170,14 @@ pub trait Fma: Copy {
 fn add_products<const L: usize>(w: f32, x: &[f32; L], acc: &mut [f32; L]) {
     for l in 0..L {
         acc[l] += w * x[l];
+    }
+}
+
+/// [`Fma::add_lanes`] as a loop.
+#[inline(always)]
+fn add_lanes<const L: usize>(x: &[f32; L], acc: &mut [f32; L]) {
+    for l in 0..L {
+        acc[l] += x[l];
     }
 }
 
@@ -384,6 +407,30 @@ impl<const AVX512: bool> Fma for X86Fma<AVX512> {
     }
 
     #[inline(always)]
+    #[allow(unsafe_code)]
+    fn add_lanes<const L: usize>(self, x: &[f32; L], acc: &mut [f32; L]) {
+        use core::arch::x86_64::{
+            _mm256_add_ps, _mm256_loadu_ps, _mm256_storeu_ps, _mm512_add_ps, _mm512_loadu_ps,
+            _mm512_storeu_ps,
+        };
+        match (L, self.avx512()) {
+            // SAFETY: an `X86Fma<true>` exists only on a CPU with AVX-512 F; `x` and `acc`
+            // hold 16 f32 (64 bytes) each, read and written unaligned.
+            (16, Some(_avx512)) => unsafe {
+                let sum = _mm512_add_ps(_mm512_loadu_ps(acc.as_ptr()), _mm512_loadu_ps(x.as_ptr()));
+                _mm512_storeu_ps(acc.as_mut_ptr(), sum);
+            },
+            // SAFETY: an `X86Fma` exists only on a CPU with AVX2; `x` and `acc` hold 8 f32
+            // (32 bytes) each, read and written unaligned.
+            (8, _) => unsafe {
+                let sum = _mm256_add_ps(_mm256_loadu_ps(acc.as_ptr()), _mm256_loadu_ps(x.as_ptr()));
+                _mm256_storeu_ps(acc.as_mut_ptr(), sum);
+            },
+            _ => add_lanes(x, acc),
+        }
+    }
+
+    #[inline(always)]
     fn scaled_group_sums(
         self,
         w: &[WeightPairs],
@@ -422,6 +469,11 @@ impl<const AVX512: bool> Fma for X86Fma<AVX512> {
     #[inline(always)]
     fn point_major<const G: usize>(self, rows: &[f32], n: usize, out: &mut [f32]) {
         transpose::point_major_avx2::<G>(self.avx2(), rows, n, out);
+    }
+
+    #[inline(always)]
+    fn channel_major<const G: usize>(self, points: &[f32], n: usize, out: &mut [f32]) {
+        transpose::channel_major_avx2::<G>(self.avx2(), points, n, out);
     }
 
     #[inline(always)]

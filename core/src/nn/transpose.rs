@@ -57,6 +57,60 @@ pub fn point_major_avx2<const G: usize>(
     }
 }
 
+/// The inverse of [`point_major`]: `n` points of `G` lanes (`points[j * G + c]`) laid out
+/// as `G` channel-major rows (`out[c * n + j]`).
+#[inline(always)]
+pub fn channel_major<const G: usize>(points: &[f32], n: usize, out: &mut [f32]) {
+    for (j, lanes) in points.chunks_exact(G).take(n).enumerate() {
+        for (c, &lane) in lanes.iter().enumerate() {
+            out[c * n + j] = lane;
+        }
+    }
+}
+
+/// [`channel_major`] with AVX2 for `G` a multiple of 8: blocks of 8 points' 8 lanes are
+/// loaded whole, transposed ([`transpose8`]) and stored as 8 rows' points; the last
+/// `n % 8` points as [`channel_major`].
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+#[allow(unsafe_code)]
+pub fn channel_major_avx2<const G: usize>(
+    avx2: super::dispatch::X86Fma,
+    points: &[f32],
+    n: usize,
+    out: &mut [f32],
+) {
+    use core::arch::x86_64::{_mm256_loadu_ps, _mm256_storeu_ps};
+    if !G.is_multiple_of(8) || points.len() < G * n || out.len() < G * n {
+        return channel_major::<G>(points, n, out);
+    }
+    let blocks = n / 8;
+    for h in 0..G / 8 {
+        for b in 0..blocks {
+            // SAFETY: an `X86Fma` exists only on a CPU with AVX2 (see `dispatch`). Point
+            // `8b + t < n` is read at lanes `8h..8h + 8 <= G`, inside `points` (`G n`, checked
+            // above); row `8h + i < G` is written at points `8b..8b + 8 <= n`, inside `out`
+            // (`G n`); `loadu`/`storeu` need no alignment.
+            unsafe {
+                let rows = transpose8(
+                    avx2,
+                    core::array::from_fn(|t| {
+                        _mm256_loadu_ps(points.as_ptr().add((8 * b + t) * G + 8 * h))
+                    }),
+                );
+                for (i, row) in rows.into_iter().enumerate() {
+                    _mm256_storeu_ps(out.as_mut_ptr().add((8 * h + i) * n + 8 * b), row);
+                }
+            }
+        }
+    }
+    for j in 8 * blocks..n {
+        for c in 0..G {
+            out[c * n + j] = points[j * G + c];
+        }
+    }
+}
+
 /// The 8 x 8 transpose of eight rows of 8 `f32`: `out[t][i] = rows[i][t]` (`vunpck*ps`,
 /// `vshufps`, `vperm2f128`).
 #[cfg(target_arch = "x86_64")]
@@ -135,6 +189,27 @@ mod tests {
                 vector.map(f32::to_bits),
                 "n = {n}"
             );
+        }
+    }
+
+    /// [`channel_major`] undoes [`point_major`], and its AVX2 form gives the same layout,
+    /// for lengths around the blocks of 8 points.
+    #[test]
+    fn channel_major_inverts_point_major() {
+        for n in [0, 1, 7, 8, 9, 16, 23, 64, 100] {
+            let rows: [f32; 16 * 100] = core::array::from_fn(|i| i as f32 * 0.5 - 3.0);
+            let rows = &rows[..16 * n];
+            let mut points = [f32::NAN; 16 * 100];
+            point_major::<16>(rows, n, &mut points);
+            let mut back = [f32::NAN; 16 * 100];
+            channel_major::<16>(&points[..16 * n], n, &mut back);
+            assert_eq!(back[..16 * n], rows[..], "n = {n}");
+            #[cfg(target_arch = "x86_64")]
+            if let Some(avx2) = super::super::dispatch::X86Fma::detect() {
+                let mut vector = [f32::NAN; 16 * 100];
+                channel_major_avx2::<16>(avx2, &points[..16 * n], n, &mut vector);
+                assert_eq!(back.map(f32::to_bits), vector.map(f32::to_bits), "n = {n}");
+            }
         }
     }
 }
