@@ -475,13 +475,16 @@ fn quantize_channels<'a>(
     tile: &mut [TilePairs],
     values: impl Fn(usize) -> &'a [f32; TILE],
 ) -> [f32; TILE] {
-    let mut max_abs = [0.0f32; TILE];
-    for c in group.channels.clone() {
-        for (m, v) in max_abs.iter_mut().zip(values(c)) {
-            let v = v.abs();
-            *m = if v > *m { v } else { *m };
+    // Two running maxima (even and odd channels), so that two chains of `max` are in
+    // flight; the maximum is exact, so the same value as one chain.
+    let (mut even, mut odd) = ([0.0f32; TILE], [0.0f32; TILE]);
+    for c in group.channels.clone().step_by(2) {
+        running_max_abs(&mut even, values(c));
+        if c + 1 < group.channels.end {
+            running_max_abs(&mut odd, values(c + 1));
         }
     }
+    let max_abs: [f32; TILE] = core::array::from_fn(|t| larger(even[t], odd[t]));
     let inverse = max_abs.map(|m| if m > 0.0 { Q_MAX / m } else { 0.0 });
     for (slot, c) in tile.iter_mut().zip(group.channels.clone().step_by(2)) {
         let even = quantized(values(c), &inverse);
@@ -493,6 +496,25 @@ fn quantize_channels<'a>(
         *slot = interleave(even, odd);
     }
     max_abs.map(|m| m / Q_MAX)
+}
+
+/// `m[t] = max(m[t], |x[t]|)` (NaNs skipped).
+#[inline(always)]
+fn running_max_abs(m: &mut [f32; TILE], x: &[f32; TILE]) {
+    for (m, v) in m.iter_mut().zip(x) {
+        let v = v.abs();
+        *m = if v > *m { v } else { *m };
+    }
+}
+
+/// The larger of two values that are not NaN.
+#[inline(always)]
+fn larger(a: f32, b: f32) -> f32 {
+    if b > a {
+        b
+    } else {
+        a
+    }
 }
 
 /// One channel's tile values times each point's inverse scale, quantized.
