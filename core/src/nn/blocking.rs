@@ -57,6 +57,9 @@ mod sizes {
     /// [`SHORT_ROW_CHANNELS`] where the CPU has 32 vector registers (AVX-512): thirty-two
     /// f64 sums are four chains of 8-lane adds in flight (sixteen were four of 4 lanes).
     pub const WIDE_SHORT_ROW_CHANNELS: usize = 32;
+    /// Integer kernel, running maxima of a tile's quantization group: two chains of `max`
+    /// in flight (even and odd channels) instead of one that waits on each.
+    pub const QUANTIZE_MAX_CHAINS: usize = 2;
 }
 
 #[cfg(target_arch = "arm")]
@@ -95,4 +98,7 @@ mod sizes {
     pub const SHORT_ROW_POINTS: usize = 512;
     /// [`SHORT_ROW_CHANNELS`] with wide registers (no 32-bit Arm CPU has them).
     pub const WIDE_SHORT_ROW_CHANNELS: usize = 4;
+    /// Integer kernel, running maxima of a tile's quantization group: one chain (a second
+    /// tile of 16 maxima would not fit the FPU's 32 registers beside the values).
+    pub const QUANTIZE_MAX_CHAINS: usize = 1;
 }

@@ -21,6 +21,8 @@ pub const TILE: usize = 16;
 pub const ROWS: usize = blocking::INT8_ROWS;
 /// Points of one register block.
 pub const POINTS: usize = blocking::INT8_POINTS;
+/// Chains of running maxima when quantizing ([`blocking`]).
+const QUANTIZE_MAX_CHAINS: usize = blocking::QUANTIZE_MAX_CHAINS;
 /// Largest quantized activation magnitude.
 const Q_MAX: f32 = 32767.0;
 /// Weight pairs one panel holds ([`blocking`]).
@@ -475,12 +477,12 @@ fn quantize_channels<'a>(
     tile: &mut [TilePairs],
     values: impl Fn(usize) -> &'a [f32; TILE],
 ) -> [f32; TILE] {
-    // Two running maxima (even and odd channels), so that two chains of `max` are in
-    // flight; the maximum is exact, so the same value as one chain.
+    // Up to two running maxima (even and odd channels, `blocking::QUANTIZE_MAX_CHAINS`),
+    // so that two chains of `max` are in flight; the maximum is exact, so the same value.
     let (mut even, mut odd) = ([0.0f32; TILE], [0.0f32; TILE]);
-    for c in group.channels.clone().step_by(2) {
+    for c in group.channels.clone().step_by(QUANTIZE_MAX_CHAINS) {
         running_max_abs(&mut even, values(c));
-        if c + 1 < group.channels.end {
+        if QUANTIZE_MAX_CHAINS == 2 && c + 1 < group.channels.end {
             running_max_abs(&mut odd, values(c + 1));
         }
     }
