@@ -1,6 +1,6 @@
-//! Channel-major rows laid out point by point: the edge convolution's neighbour terms
-//! (`G` channels a point, the lanes of its vectors), and the 8 x 8 transpose that the
-//! AVX2 instance-norm sums share.
+//! Channel-major rows laid out point by point and back: the edge convolution's neighbour
+//! and centre terms (`G` channels a point, the lanes of its vectors) and its per-point
+//! maxima, and the 8 x 8 transpose that the AVX2 instance-norm sums share.
 
 /// `out[j * G + c] = rows[c * n + j]` for every point `j < n` and channel `c < G`: `G`
 /// rows of `n` values (`rows` holds at least `G n`) laid out point by point (a pure
