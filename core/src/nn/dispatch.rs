@@ -275,6 +275,13 @@ pub enum KernelSet {
     Avx512 = 3,
 }
 
+/// [`KernelSet::Avx512`] as [`kernel_set`] returns it.
+#[cfg(target_arch = "x86_64")]
+const SET_AVX512: u8 = KernelSet::Avx512 as u8;
+/// [`KernelSet::Avx2`] as [`kernel_set`] returns it.
+#[cfg(target_arch = "x86_64")]
+const SET_AVX2: u8 = KernelSet::Avx2 as u8;
+
 /// What this CPU has: 0 not checked yet, else a [`KernelSet`].
 #[cfg(target_arch = "x86_64")]
 static DETECTED: AtomicU8 = AtomicU8::new(0);
@@ -342,13 +349,13 @@ impl X86Fma {
     /// The token if this CPU has AVX2, FMA and F16C and the OS saves the AVX registers (and
     /// [`limit_kernels`] allows them).
     pub fn detect() -> Option<Self> {
-        (kernel_set() >= KernelSet::Avx2 as u8).then_some(X86Fma(()))
+        (kernel_set() >= SET_AVX2).then_some(X86Fma(()))
     }
 
     /// The AVX-512 token if this CPU has AVX-512 F, BW, VL and VNNI besides, the OS saves
     /// their registers and [`limit_kernels`] allows them.
     pub fn detect_avx512() -> Option<X86Fma<true>> {
-        (kernel_set() >= KernelSet::Avx512 as u8).then_some(X86Fma(()))
+        (kernel_set() >= SET_AVX512).then_some(X86Fma(()))
     }
 }
 
@@ -539,10 +546,12 @@ impl<const AVX512: bool> Fma for X86Fma<AVX512> {
 /// (a closure calling the generic kernel).
 #[inline(always)]
 pub fn with_fma<R>(kernel: impl Kernel<R>) -> R {
+    // One read of the cached set (`X86Fma::detect*` each read it again; inlined into every
+    // kernel call, a second read measured slower).
     #[cfg(target_arch = "x86_64")]
     match kernel_set() {
-        3 => return run_avx512(X86Fma(()), kernel),
-        2 => return run_avx2_fma(X86Fma(()), kernel),
+        SET_AVX512 => return run_avx512(X86Fma(()), kernel),
+        SET_AVX2 => return run_avx2_fma(X86Fma(()), kernel),
         _ => {}
     }
     run_portable(kernel)

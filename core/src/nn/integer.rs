@@ -96,8 +96,8 @@ pub fn linear_int8<F: Fma, W: WeightRows>(
             let points = i0..i0 + len;
             let mut r = 0;
             while r < count {
-                let block = r / ROWS * pairs;
                 let at = r / ROWS;
+                let block = at * pairs;
                 if F::WIDE_REGISTERS && r + ROWS < count {
                     let blocks = &panel.0[block..block + 2 * pairs];
                     let affine = [&affine[at], &affine[at + 1]];
