@@ -47,13 +47,16 @@ class PointLinear(nn.Module):
 def instance_norm(x: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
     """InstanceNorm without affine parameters over the rows of a point-major (N, C) or (B, N, C) tensor.
 
-    Per channel: (x - mean) / sqrt(biased_var + 1e-5), statistics over the N rows (one set of points). Computed
-    on the channel-major view, as the reference's InstanceNorm1d does, so that the rounding is the reference's
-    too (the batch-norm kernel on the point-major layout takes another path, a few ulps away). With `valid`
+    Per channel: (x - mean) / sqrt(biased_var + 1e-5), statistics over the N rows (one set of points). Without
+    gradients it runs on the channel-major view, as the reference's InstanceNorm1d does, so that the rounding is
+    the reference's too (the batch-norm kernel on the point-major layout takes another path, a few ulps away);
+    with gradients, `PointMajorInstanceNorm` (same function, no layout copies, a cheaper backward). With `valid`
     (B, N) the sets are padded: statistics run over each set's valid rows (`masked_instance_norm`).
     """
     if valid is not None:
         return masked_instance_norm(x, valid)
+    if torch.is_grad_enabled():
+        return PointMajorInstanceNorm.apply(at_least_float32(x))
     batch = x if x.dim() == 3 else x.unsqueeze(0)
     normed = F.instance_norm(batch.transpose(1, 2), eps=INSTANCE_NORM_EPS).transpose(1, 2)
     return normed if x.dim() == 3 else normed.squeeze(0)
@@ -68,6 +71,34 @@ def masked_instance_norm(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     centred = x - mean
     variance = (centred.square() * weight).sum(dim=-2, keepdim=True) / count
     return centred * torch.rsqrt(variance + INSTANCE_NORM_EPS)
+
+
+def at_least_float32(x: torch.Tensor) -> torch.Tensor:
+    """x in float32 when it is narrower (a bf16 autocast product): normalisation statistics in full precision."""
+    return x.float() if x.dtype in (torch.bfloat16, torch.float16) else x
+
+
+class PointMajorInstanceNorm(torch.autograd.Function):
+    """`instance_norm` of a point-major (N, C) or (B, N, C) tensor in place of its layout, for training.
+
+    Saves only the output y and 1/sigma: the input gradient is (g - mean(g) - y mean(g y)) / sigma per channel,
+    the standard normalisation backward, in five passes over (N, C) instead of the batch-norm kernel's copies.
+    """
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor) -> torch.Tensor:
+        centred = x - x.mean(dim=-2, keepdim=True)
+        inv_std = torch.rsqrt(centred.square().mean(dim=-2, keepdim=True) + INSTANCE_NORM_EPS)
+        y = centred * inv_std
+        ctx.save_for_backward(y, inv_std)
+        return y
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
+        y, inv_std = ctx.saved_tensors
+        mean_grad = grad.mean(dim=-2, keepdim=True)
+        mean_grad_y = (grad * y).mean(dim=-2, keepdim=True)
+        return (grad - mean_grad - y * mean_grad_y) * inv_std
 
 
 class InstanceNorm(nn.Module):

@@ -18,6 +18,7 @@ from .attention import Attention, coordinate_neighbours
 from .classifier import MatchClassifier
 from .config import ModelConfig
 from .encoder import PointResNet
+from .layers import at_least_float32
 from .sinkhorn import cost_with_dustbins, descriptor_distances, marginals, mutual_assignment, transport
 
 
@@ -62,11 +63,12 @@ class RawMatcher(nn.Module):
         neighbours3d = coordinate_neighbours(pts3d, self.config.knn)
         desc2d, desc3d = self.kp2d_enc(pts2d), self.kp3d_enc(pts3d)
         desc2d, desc3d = self.attention(desc2d, desc3d, neighbours2d, neighbours3d)
-        desc2d = F.normalize(desc2d, p=2, dim=-1)
-        desc3d = F.normalize(desc3d, p=2, dim=-1)
-        cost = cost_with_dustbins(descriptor_distances(desc3d, desc2d), self.bin_score)
-        mu, nu = marginals(desc3d.shape[-2], desc2d.shape[-2], cost)
-        log_plan, iterations = transport(cost, mu, nu, self.config.sinkhorn_eps, self.config.sinkhorn_iters)
+        desc2d = F.normalize(at_least_float32(desc2d), p=2, dim=-1)
+        desc3d = F.normalize(at_least_float32(desc3d), p=2, dim=-1)
+        with torch.autocast(desc2d.device.type, enabled=False):  # the matching layer in float32 (bf16 training)
+            cost = cost_with_dustbins(descriptor_distances(desc3d, desc2d), self.bin_score)
+            mu, nu = marginals(desc3d.shape[-2], desc2d.shape[-2], cost)
+            log_plan, iterations = transport(cost, mu, nu, self.config.sinkhorn_eps, self.config.sinkhorn_iters)
         return desc2d, desc3d, cost, log_plan, iterations
 
 

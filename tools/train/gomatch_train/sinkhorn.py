@@ -71,26 +71,67 @@ def scaling_sinkhorn(cost: torch.Tensor, mu: torch.Tensor, nu: torch.Tensor, eps
     With s = min C, K = exp(-(C - s) / eps), a = exp((u - s) / eps), b = exp(v / eps) the log-domain updates read
     a <- (mu + 1e-8) / (K b), b <- (nu + 1e-8) / (K^T a), and log P = log a_i + log K_ij + log b_j; the stop test
     eps * ||log a - log a_prev|| < 1e-6 is the log-domain one. Two matrix-vector products per iteration instead of
-    two logsumexp passes make forward and backward several times cheaper; used for training.
+    two logsumexp passes; the iterations run without autograd and `ScalingSinkhornPlan` differentiates them
+    (the scaling vectors of every iteration kept, not the matrices). Used for training.
     Requires (max C - min C) / eps <= MAX_EXP_DOMAIN_RANGE so that K has no underflow (s is per problem).
     """
-    shift = cost.detach().amin(dim=(-2, -1), keepdim=True)
-    log_k = (cost - shift) / -eps
-    k = log_k.exp()
     row_mass, col_mass = mu + 1e-8, nu + 1e-8
-    batch = cost.shape[:-2]
-    b = nu.new_ones(batch + nu.shape[-1:])
-    log_a_prev = (shift.squeeze(-1) / -eps).expand(batch + mu.shape[-1:])
-    iterations = 0
-    for _ in range(max_iters):
-        a = row_mass / matvec(k, b)
-        b = col_mass / matvec(k.transpose(-2, -1), a)
-        iterations += 1
-        log_a = a.log()
-        if (eps * (log_a - log_a_prev)).norm(dim=-1).max() < SINKHORN_STOP_THRESHOLD:
-            break
-        log_a_prev = log_a
-    return log_a.unsqueeze(-1) + log_k + b.log().unsqueeze(-2), iterations
+    with torch.no_grad():
+        shift = cost.amin(dim=(-2, -1), keepdim=True)
+        k = ((cost - shift) / -eps).exp()
+        batch = cost.shape[:-2]
+        b = nu.new_ones(batch + nu.shape[-1:])
+        log_a_prev = (shift.squeeze(-1) / -eps).expand(batch + mu.shape[-1:])
+        rows, columns = [], [b]
+        for _ in range(max_iters):
+            a = row_mass / matvec(k, b)
+            b = col_mass / matvec(k.transpose(-2, -1), a)
+            rows.append(a)
+            columns.append(b)
+            log_a = a.log()
+            if (eps * (log_a - log_a_prev)).norm(dim=-1).max() < SINKHORN_STOP_THRESHOLD:
+                break
+            log_a_prev = log_a
+    log_plan = ScalingSinkhornPlan.apply(cost, k, shift, torch.stack(rows), torch.stack(columns), row_mass, col_mass,
+                                         eps)  # fmt: skip
+    return log_plan, len(rows)
+
+
+class ScalingSinkhornPlan(torch.autograd.Function):
+    """log P = log a_T + log K + log b_T from the scaling vectors a_1..a_T, b_0..b_T of `scaling_sinkhorn`, with
+    the gradient of the unrolled iteration computed in reverse from those vectors alone.
+
+    With x_t = log a_t = log r - log(K b_{t-1}) and y_t = log b_t = log c - log(K^T a_t), the adjoints run
+        w_t = ybar_t b_t / c,  xbar_t = [t = T] sum_j G_ij - a_t (K w_t),  z_t = xbar_t a_t / r,
+        ybar_{t-1} = -b_{t-1} (K^T z_t),   from ybar_T = sum_i G_ij,
+    and dL/dK = -sum_t (a_t w_t^T + z_t b_{t-1}^T), one product of two (R, 2T) and (2T, C) factors instead of 2T
+    outer products; dL/dC = -(G + K * dL/dK) / eps. Autograd through the loop would keep a matrix per iteration.
+    """
+
+    @staticmethod
+    def forward(ctx, cost, k, shift, rows, columns, row_mass, col_mass, eps):
+        ctx.save_for_backward(k, rows, columns, row_mass, col_mass)
+        ctx.eps = eps
+        return rows[-1].log().unsqueeze(-1) + (cost - shift) / -eps + columns[-1].log().unsqueeze(-2)
+
+    @staticmethod
+    def backward(ctx, grad):
+        k, rows, columns, row_mass, col_mass = ctx.saved_tensors
+        steps = len(rows)
+        row_grad = grad.sum(dim=-1)
+        col_grad = grad.sum(dim=-2)
+        left, right = [], []
+        for t in range(steps, 0, -1):
+            a, b, b_prev = rows[t - 1], columns[t], columns[t - 1]
+            w = col_grad * b / col_mass
+            x_bar = (row_grad if t == steps else 0.0) - a * matvec(k, w)
+            z = x_bar * a / row_mass
+            col_grad = -b_prev * matvec(k.transpose(-2, -1), z)
+            left += [a, z]
+            right += [w, b_prev]
+        k_grad = torch.matmul(torch.stack(left, dim=-1), torch.stack(right, dim=-2))
+        cost_grad = (grad - k * k_grad) / -ctx.eps
+        return cost_grad, None, None, None, None, None, None, None
 
 
 def matvec(matrix: torch.Tensor, vector: torch.Tensor) -> torch.Tensor:

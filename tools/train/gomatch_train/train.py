@@ -30,6 +30,7 @@ import time
 import numpy as np
 import torch
 
+from . import compiled
 from .config import ModelConfig
 from .dataset import load_samples, subsample
 from .evaluate import Totals, assess, assess_batch
@@ -66,6 +67,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--workers", type=int, default=1, help="data-parallel processes sharing each batch")
     p.add_argument("--batched", action="store_true",
                    help="one forward pass per batch of equal-size samples (cropped to the batch's smallest sets)")
+    p.add_argument("--compile", action="store_true",
+                   help="torch.compile the hot functions of the training step (CPU: about 1.6x faster; compiles "
+                        "for a minute first)")
+    p.add_argument("--bf16", action="store_true",
+                   help="bfloat16 autocast for the network's matrix products (the matching layer and every "
+                        "normalisation stay float32)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--feature-dim", type=int, default=ModelConfig.feature_dim)
     p.add_argument("--encoder-blocks", type=int, default=ModelConfig.encoder_blocks)
@@ -223,7 +230,7 @@ class Run:
         self.model = GoMatch(model_config(args)).to(self.device)
         if args.init is not None:
             self.start_from(args.init)
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=args.lr)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=args.lr, fused=True)
 
     def start_from(self, path: str) -> None:
         """Initial weights from an export, whose configuration must be this run's."""
@@ -294,7 +301,9 @@ class Run:
         """Outcomes of one forward pass over equal-size samples."""
         pts2d, pts3d, match = stacked_tensors(chunk, self.device)
         threshold = self.model.config.match_threshold
-        return assess_batch(self.model.forward_batch(pts2d, pts3d), match, threshold)
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.args.bf16):
+            result = self.model.forward_batch(pts2d, pts3d)
+        return assess_batch(result, match, threshold)
 
 
 def train(args, group: Group = Group()) -> dict:
@@ -306,6 +315,8 @@ def train(args, group: Group = Group()) -> dict:
             print(message, flush=True)
 
     configure_cpu(args.threads)
+    if args.compile:
+        compiled.enable()
     os.makedirs(args.out, exist_ok=True)
     run = Run(args)
     if args.resume and os.path.exists(run.checkpoint_path):
