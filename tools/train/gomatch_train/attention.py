@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .compiled import compilable
-from .layers import INSTANCE_NORM_EPS, InstanceNorm, at_least_float32, PointLinear, instance_norm
+from .layers import INSTANCE_NORM_EPS, InstanceNorm, at_least_float32, on_both_sets, PointLinear, instance_norm
 
 LEAKY_SLOPE = 0.2
 
@@ -188,7 +188,9 @@ class EdgeConvSelfAttention(nn.Module):
         return F.leaky_relu(instance_norm(x3), LEAKY_SLOPE)
 
     def forward(self, desc2d, desc3d, neighbours2d, neighbours3d):
-        return self.update(desc2d, neighbours2d), self.update(desc3d, neighbours3d)
+        if desc2d.dim() == 2:
+            return self.update(desc2d, neighbours2d), self.update(desc3d, neighbours3d)
+        return on_both_sets(self.update, desc2d, desc3d, (neighbours2d, neighbours3d))
 
 
 class MultiHeadAttention(nn.Module):

@@ -32,7 +32,7 @@ def compilable(fn):
     @functools.wraps(fn)
     def dispatch(*args, **kwargs):
         nonlocal compiled
-        if not _enabled:
+        if not _enabled or torch.compiler.is_compiling():  # eager, or inlined into a caller being compiled
             return fn(*args, **kwargs)
         if compiled is None:
             compiled = torch.compile(fn, dynamic=True)

@@ -18,7 +18,7 @@ from .attention import Attention, coordinate_neighbours
 from .classifier import MatchClassifier
 from .config import ModelConfig
 from .encoder import PointResNet
-from .layers import at_least_float32
+from .layers import at_least_float32, on_both_sets
 from .sinkhorn import cost_with_dustbins, descriptor_distances, marginals, mutual_assignment, transport
 
 
@@ -61,7 +61,10 @@ class RawMatcher(nn.Module):
     def forward(self, pts2d: torch.Tensor, pts3d: torch.Tensor):
         neighbours2d = coordinate_neighbours(pts2d, self.config.knn)
         neighbours3d = coordinate_neighbours(pts3d, self.config.knn)
-        desc2d, desc3d = self.kp2d_enc(pts2d), self.kp3d_enc(pts3d)
+        if pts2d.dim() == 2:
+            desc2d, desc3d = self.kp2d_enc(pts2d), self.kp3d_enc(pts3d)
+        else:  # the encoder is shared: one stacked pass where the sets have the same size
+            desc2d, desc3d = on_both_sets(self.kp2d_enc, pts2d, pts3d)
         desc2d, desc3d = self.attention(desc2d, desc3d, neighbours2d, neighbours3d)
         desc2d = F.normalize(at_least_float32(desc2d), p=2, dim=-1)
         desc3d = F.normalize(at_least_float32(desc3d), p=2, dim=-1)
