@@ -13,7 +13,8 @@
 
 use super::blocking;
 use super::dispatch::Fma;
-use super::linear::{Input, WeightRows, MAX_INPUT};
+use super::operands::{Input, WeightRows};
+use crate::limits::MAX_INPUT;
 
 /// Points quantized together: one tile of the input, reused by every output row.
 pub const TILE: usize = 16;
@@ -995,7 +996,7 @@ mod tests {
         let c: [f32; 14 * N] = core::array::from_fn(|i| libm::sinf(i as f32 * 2.1));
         let input =
             Input::parts([&a, &b, &c], [a_rows, b_rows, c_rows], N).columns(5, SMALL_SET + 3);
-        let slice = super::super::linear::ColumnSlice {
+        let slice = super::super::operands::ColumnSlice {
             layer: &linear_layer,
             start: a_rows,
             cols: b_rows + c_rows,
