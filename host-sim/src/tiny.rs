@@ -4,7 +4,8 @@
 
 use gomatch::weights::{tensor_spec, ModelConfig, Precision};
 use gomatch::Camera;
-use gomatch_tools::convert::{write_blob, FloatLinear, Options};
+use gomatch_tools::convert::{write_blob, Options};
+use gomatch_tools::float_linear::FloatLinear;
 
 use crate::colmap::{parse_cameras_txt, parse_images_txt, parse_points_txt};
 use crate::map::build_map;

@@ -5,6 +5,7 @@ pub mod agreement;
 pub mod calibration;
 pub mod convert;
 pub mod files;
+pub mod float_linear;
 pub mod image_layout;
 pub mod mem_report;
 pub mod quantize;
