@@ -64,7 +64,7 @@ pub fn find_model_dir(dir: &Path) -> anyhow::Result<PathBuf> {
         bail!(
             "{} is a file ({}), not a COLMAP model folder (cameras, images, points3D .bin or .txt)",
             dir.display(),
-            gomatch_tools::files::FileKind::of(&head).describe()
+            gomatch_blobs::files::FileKind::of(&head).describe()
         );
     }
     if holds_model(dir) {

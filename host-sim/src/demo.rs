@@ -137,7 +137,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let blob = if args.oracle {
         None
     } else if model_path.is_file() {
-        Some(gomatch_tools::files::read_model_blob(&model_path)?)
+        Some(gomatch_blobs::files::read_model_blob(&model_path)?)
     } else {
         println!(
             "NOTE: no trained model at {}; falling back to ground-truth matches (oracle) to show the pose solver. Pass --model PATH to use another blob.",

@@ -541,7 +541,7 @@ pub fn load_model(path: Option<&Path>) -> anyhow::Result<(Vec<u8>, String)> {
         .map(Path::to_path_buf)
         .or_else(|| shipped.is_file().then_some(shipped));
     if let Some(path) = path {
-        let blob = gomatch_tools::files::read_model_blob(&path)?;
+        let blob = gomatch_blobs::files::read_model_blob(&path)?;
         return Ok((blob, path.display().to_string()));
     }
     let fixture = fixture_weights_path();
@@ -551,7 +551,7 @@ pub fn load_model(path: Option<&Path>) -> anyhow::Result<(Vec<u8>, String)> {
             fixture.display()
         )
     })?;
-    let (blob, _) = gomatch_tools::convert::convert(&checkpoint, Precision::Int8)?;
+    let (blob, _) = gomatch_blobs::convert::convert(&checkpoint, Precision::Int8)?;
     let what = format!(
         "{} converted to int8 (random reference fixture weights: poses will be wrong)",
         fixture.display()
@@ -561,10 +561,10 @@ pub fn load_model(path: Option<&Path>) -> anyhow::Result<(Vec<u8>, String)> {
 
 /// The reference fixture weights, `shared/reference/fixtures/weights.safetensors` beside the
 /// repository, found from the current folder or the executable's
-/// ([`gomatch_tools::files::find_default`]).
+/// ([`gomatch_blobs::files::find_default`]).
 pub fn fixture_weights_path() -> PathBuf {
     const FIXTURE: &str = "shared/reference/fixtures/weights.safetensors";
-    gomatch_tools::files::find_default(FIXTURE).unwrap_or_else(|| PathBuf::from("..").join(FIXTURE))
+    gomatch_blobs::files::find_default(FIXTURE).unwrap_or_else(|| PathBuf::from("..").join(FIXTURE))
 }
 
 /// Runs `gomatch-sim device`.

@@ -37,7 +37,7 @@ use crate::protocol::{
     QuerySample,
 };
 use crate::scene::{ImageId, PointId, Scene};
-use gomatch_tools::view_features::{attach, build_view_features};
+use gomatch_blobs::view_features::{attach, build_view_features};
 
 /// Thread stack for the localizer workers: the workspace lives on it (about 7.7 MiB with
 /// an f32 cost, twice that in unoptimised builds).
@@ -1085,7 +1085,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let (matching, matcher) = if args.oracle {
         (Matching::Oracle, "oracle".to_string())
     } else {
-        blob = gomatch_tools::files::read_model_blob(&model_path)
+        blob = gomatch_blobs::files::read_model_blob(&model_path)
             .context("pass --model PATH, or use --oracle")?;
         model = Model::from_bytes(&blob)
             .with_context(|| format!("decoding the model {}", model_path.display()))?;

@@ -523,20 +523,20 @@ fn localize_all(session: Session<'_>, queries: &[QuerySpec]) -> anyhow::Result<V
 
 /// Runs `gomatch-sim localize` and returns its report.
 pub fn run(args: &Args) -> anyhow::Result<LocalizeReport> {
-    let map_blob = gomatch_tools::files::read_map_blob(&args.map)?;
+    let map_blob = gomatch_blobs::files::read_map_blob(&args.map)?;
     let features_blob = match &args.view_features {
         Some(path) => std::fs::read(path).with_context(|| format!("reading {}", path.display()))?,
         None => Vec::new(),
     };
     let mut map = Map::from_bytes(&map_blob)?;
     if args.view_features.is_some() {
-        map = gomatch_tools::view_features::attach(map, &features_blob)?;
+        map = gomatch_blobs::view_features::attach(map, &features_blob)?;
     }
     let model_path = args
         .model
         .clone()
-        .unwrap_or_else(gomatch_tools::files::shipped_model_path);
-    let model_blob = gomatch_tools::files::read_model_blob(&model_path)?;
+        .unwrap_or_else(gomatch_blobs::files::shipped_model_path);
+    let model_blob = gomatch_blobs::files::read_model_blob(&model_path)?;
     let camera = match (&args.camera, args.camera_index) {
         (Some(line), _) => {
             Some(parse_camera_line(line).with_context(|| format!("--camera {line:?}"))?)

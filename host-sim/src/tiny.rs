@@ -4,8 +4,8 @@
 
 use gomatch::weights::{tensor_spec, ModelConfig, Precision};
 use gomatch::Camera;
-use gomatch_tools::convert::{write_blob, Options};
-use gomatch_tools::float_linear::FloatLinear;
+use gomatch_blobs::convert::{write_blob, Options};
+use gomatch_blobs::float_linear::FloatLinear;
 
 use crate::colmap::{parse_cameras_txt, parse_images_txt, parse_points_txt};
 use crate::map::build_map;

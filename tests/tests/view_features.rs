@@ -8,8 +8,8 @@ use std::sync::Mutex;
 use gomatch::localizer::Localization;
 use gomatch::view_features::ViewFeatures;
 use gomatch::{Error, Localizer, LocalizerConfig, Map, Model, Query, ViewSelection};
+use gomatch_blobs::view_features::{attach, build_view_features};
 use gomatch_tools::mem_report::{map_query, BUILTIN_MAP};
-use gomatch_tools::view_features::{attach, build_view_features};
 use half::f16;
 
 const CAPACITY: usize = 256;
