@@ -1,6 +1,6 @@
 //! `gomatch-sim localize`: localizes new photos against a map blob (paper sec. 4.1, the
 //! device path: the core's [`Localizer::localize`]). A query is its keypoints (a text
-//! file, a `.npy` array or COLMAP's `database.db`, [`crate::keypoints`]), its camera (a
+//! file, a `.npy` array or COLMAP's `database.db`, [`crate::readers::keypoints`]), its camera (a
 //! COLMAP camera line, a camera of the map, or the database's) and the database views to
 //! match it against (names, an hloc pairs file, or a prior pose). Many queries come as an
 //! hloc query list (`name MODEL WIDTH HEIGHT PARAMS...` per line).
@@ -21,10 +21,10 @@ use half::f16;
 use nalgebra::UnitQuaternion;
 use serde::{Deserialize, Serialize};
 
-use crate::colmap::parse_camera_line;
 use crate::eval::{Counts, TimingsMs};
 use crate::host::{HostClock, CAPACITY};
-use crate::keypoints::{read_keypoint_file, ColmapDatabase, KeypointFile};
+use crate::readers::colmap::parse_camera_line;
+use crate::readers::keypoints::{read_keypoint_file, ColmapDatabase, KeypointFile};
 
 /// Thread stack for the localizer (its workspace lives on it; see `eval`).
 const WORKER_STACK: usize = 64 << 20;

@@ -14,9 +14,9 @@ use gomatch::map::{
 };
 use gomatch::pose::{MAX_BEARING, MIN_DEPTH_RATIO};
 
-use crate::colmap::camera_line;
 use crate::host::ModelArgs;
 use crate::protocol::{audit_projections, ProjectionAudit, ProtocolParams};
+use crate::readers::colmap::camera_line;
 use crate::scene::{ImageId, Keypoint, Scene};
 
 /// Bytes of one SIFT descriptor (128 x u8).

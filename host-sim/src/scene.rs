@@ -380,10 +380,10 @@ impl SceneSource {
     /// Reads and validates the scene, keypoints in the order the files store them.
     pub fn load_as_stored(&self) -> anyhow::Result<Scene> {
         let scene = match self {
-            SceneSource::Colmap(dir) => crate::colmap::read_model(dir)?,
-            SceneSource::Bal(path) => crate::bal::read_bal(path)?,
-            SceneSource::Bundler(path) => crate::bundler::read_bundler(path)?,
-            SceneSource::OpenSfm(path) => crate::opensfm::read_opensfm(path)?,
+            SceneSource::Colmap(dir) => crate::readers::colmap::read_model(dir)?,
+            SceneSource::Bal(path) => crate::readers::bal::read_bal(path)?,
+            SceneSource::Bundler(path) => crate::readers::bundler::read_bundler(path)?,
+            SceneSource::OpenSfm(path) => crate::readers::opensfm::read_opensfm(path)?,
         };
         scene.validate()?;
         Ok(scene)
@@ -421,7 +421,7 @@ impl SceneSource {
                 format!("bundler/{}", stem.unwrap_or_default())
             }
             SceneSource::OpenSfm(path) => {
-                let (reconstruction, _) = crate::opensfm::model_files(path);
+                let (reconstruction, _) = crate::readers::opensfm::model_files(path);
                 let folder = reconstruction.parent().and_then(file_name);
                 format!("opensfm/{}", folder.unwrap_or_default())
             }

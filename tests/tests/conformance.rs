@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 
 use gomatch::nn::SMALL_SET;
 use gomatch::Precision;
-use gomatch_sim::conform::{conform, conform_blob, PlanArg, Report};
+use gomatch_sim::eval::conform::{conform, conform_blob, PlanArg, Report};
 
 fn fixtures() -> Option<Vec<PathBuf>> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/reference/fixtures");

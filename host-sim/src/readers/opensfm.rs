@@ -29,7 +29,7 @@ use gomatch::{Camera, Pose};
 use nalgebra::{Rotation3, Vector3};
 use serde::Deserialize;
 
-use crate::parse::FormatError;
+use crate::readers::parse::FormatError;
 use crate::scene::{
     CameraId, Image, ImageId, Keypoint, Point3d, PointId, Scene, SceneSource, TrackElement,
 };

@@ -1,4 +1,4 @@
-//! Bundler v0.3 `bundle.out` reader. Same camera model as BAL (see [`crate::bal`] for the
+//! Bundler v0.3 `bundle.out` reader. Same camera model as BAL (see [`crate::readers::bal`] for the
 //! exact conversion), with the rotation stored as a 3x3 matrix; cameras with `f = 0` were
 //! not placed by Bundler and are skipped together with their observations. Image names
 //! come from the name list beside the file (`list.txt` or `name_list.txt`, one image per
@@ -9,8 +9,8 @@ use std::path::Path;
 use anyhow::Context;
 use nalgebra::{Matrix3, Vector3};
 
-use crate::bal::{assemble_scene, BundlerCamera, Observation};
-use crate::parse::{FormatError, Tokens};
+use crate::readers::bal::{assemble_scene, BundlerCamera, Observation};
+use crate::readers::parse::{FormatError, Tokens};
 use crate::scene::{Scene, SceneSource};
 
 /// First line of every Bundler v0.3 file.

@@ -20,7 +20,7 @@ use gomatch::camera::CameraModel;
 use gomatch::{Camera, Pose};
 use nalgebra::{Matrix3, Rotation3, Vector3};
 
-use crate::parse::{FormatError, Tokens};
+use crate::readers::parse::{FormatError, Tokens};
 use crate::scene::{Image, ImageId, Keypoint, Point3d, Scene, SceneSource, TrackElement};
 
 /// One camera of a BAL/Bundler file in its own convention.

@@ -5,6 +5,15 @@
 //! for the device info, optionally sends noise (to show the receiver resynchronising),
 //! sends the queries of a synthetic scene and checks every reply against a direct
 //! [`Localizer::localize`] call on the same input.
+//!
+//! Beside it: [`faulty_link`] runs the link over a lossy line, [`tiny`] builds the tiny
+//! scene, map and model its soak and the fuzz targets use, and [`firmware_data`] and
+//! [`firmware_reply`] write the firmware image's embedded data and the host's reply to it.
+
+pub mod faulty_link;
+pub mod firmware_data;
+pub mod firmware_reply;
+pub mod tiny;
 
 use std::collections::VecDeque;
 use std::convert::Infallible;
@@ -29,8 +38,8 @@ use rand_pcg::Pcg64Mcg;
 use crate::eval::{protocol_samples, query_pixels};
 use crate::host::{default_model_path, HostClock, CAPACITY};
 use crate::map::build_map;
+use crate::protocol::synthetic::SyntheticQueries;
 use crate::protocol::QuerySample;
-use crate::synthetic::SyntheticQueries;
 
 /// Receive buffer of the simulated device.
 const RX: usize = link::rx_frame_len(CAPACITY);

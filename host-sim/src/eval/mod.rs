@@ -10,6 +10,15 @@
 //! match counts per stage, how many merged matches and inliers are ground-truth pairs
 //! ([`Correct`]), stage timings, and how well the acceptance rule separates right poses
 //! from wrong ones ([`AcceptanceSummary`], with each query's [`Evidence`] and features).
+//!
+//! Beside it: [`fit`] fits the acceptance rule on its reports, [`demo`] localizes a
+//! built-in synthetic scene, [`pnp`] compares RANSAC-PnP with PoseLib and OpenCV, and
+//! [`conform`] compares the matcher's stages with the reference's.
+
+pub mod conform;
+pub mod demo;
+pub mod fit;
+pub mod pnp;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};

@@ -10,7 +10,7 @@ use gomatch::camera::{CameraModel, MAX_PARAMS};
 use gomatch::{Camera, Pose};
 use nalgebra::Vector3;
 
-use crate::parse::{field, token, ByteReader, FormatError};
+use crate::readers::parse::{field, token, ByteReader, FormatError};
 use crate::scene::{
     CameraId, Image, ImageId, Keypoint, Point3d, PointId, Scene, SceneSource, TrackElement,
 };
