@@ -7,7 +7,7 @@ use std::time::Instant;
 use clap::Args as ClapArgs;
 use gomatch::localizer::Clock;
 
-use crate::scene::SceneSource;
+use crate::readers::SceneSource;
 
 /// Keypoint and per-view point capacity of the evaluated localizer (the paper's 1024).
 pub const CAPACITY: usize = 1024;

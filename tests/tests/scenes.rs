@@ -4,7 +4,8 @@
 
 use std::path::PathBuf;
 
-use gomatch_sim::scene::{median, SceneSource};
+use gomatch_sim::readers::SceneSource;
+use gomatch_sim::scene::median;
 
 /// `shared/data`, located from this crate's manifest (`<repo>/tests`), or `None` with a
 /// printed reason.
