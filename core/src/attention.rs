@@ -14,6 +14,7 @@ use crate::nn::blocking::{
 };
 use crate::nn::dispatch::{with_fma, Fma, Kernel};
 use crate::nn::linear::{accumulate, chunk_rows, larger, store, store_point_major};
+use crate::nn::transpose::TransposeVariants;
 use crate::nn::{
     exp, instance_norm_rows, leaky_relu, linear, relu, sqrt, Input, LayerInput, LayerTap, Moments,
     StatSum, ROW_BLOCK,

@@ -7,7 +7,8 @@
 //! per point and the match features are gathered from them, with no gathered copy of the
 //! descriptors.
 
-use crate::nn::linear::{store, ColumnSlice};
+use crate::nn::linear::store;
+use crate::nn::operands::ColumnSlice;
 use crate::nn::{linear, residual_block, Input, LayerInput, LayerTap};
 use crate::sinkhorn::Match;
 use crate::weights::ClassifierWeights;

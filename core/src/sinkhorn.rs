@@ -8,7 +8,8 @@
 //! evaluated on demand from the cost and the potentials `u`, `v`.
 
 use crate::nn::dispatch::{f16_to_f32, with_fma, Fma, Kernel};
-use crate::nn::linear::{linear_with, WeightRows};
+use crate::nn::linear::linear_with;
+use crate::nn::operands::WeightRows;
 use crate::nn::{exp, sqrt, Input, COL_BLOCK};
 
 /// Storage type of the cost matrix.

@@ -8,7 +8,9 @@
 
 use gomatch::nn::dispatch::{f16_to_f32, Fma, Portable};
 use gomatch::nn::fma::mul_add;
-use gomatch::nn::integer::{block_sums, TilePairs, WeightPairs, WordAligned, POINTS, TILE};
+use gomatch::nn::integer::{
+    block_sums, IntegerVariants, TilePairs, WeightPairs, WordAligned, POINTS, TILE,
+};
 use gomatch::nn::COL_BLOCK;
 use gomatch::rng::SplitMix64;
 

@@ -57,7 +57,7 @@ pub const TARGETS: [(&str, Body); 10] = [
 
 static LOCALIZER: Mutex<Localizer<CAPACITY>> = Mutex::new(Localizer::new());
 
-/// The tiny model, map and query of `gomatch_sim::tiny`, and the replies of a fresh
+/// The tiny model, map and query of `gomatch_sim::device::tiny`, and the replies of a fresh
 /// device to the probe requests.
 pub struct Fixture {
     /// Model blob.
@@ -76,10 +76,11 @@ pub struct Fixture {
 pub fn fixture() -> &'static Fixture {
     static FIXTURE: OnceLock<Fixture> = OnceLock::new();
     FIXTURE.get_or_init(|| {
-        let model = gomatch_sim::tiny::random_model_blob(&FUZZ_MODEL, 5).expect("tiny model");
-        let map = gomatch_sim::tiny::tiny_map_blob(FIXTURE_POINTS).expect("tiny map");
-        let camera = gomatch_sim::tiny::tiny_camera().expect("tiny camera");
-        let pixels = gomatch_sim::tiny::tiny_query(0.05, FIXTURE_KEYPOINTS);
+        let model =
+            gomatch_sim::device::tiny::random_model_blob(&FUZZ_MODEL, 5).expect("tiny model");
+        let map = gomatch_sim::device::tiny::tiny_map_blob(FIXTURE_POINTS).expect("tiny map");
+        let camera = gomatch_sim::device::tiny::tiny_camera().expect("tiny camera");
+        let pixels = gomatch_sim::device::tiny::tiny_query(0.05, FIXTURE_KEYPOINTS);
         let probe_frames = probe_frames(camera, &pixels);
         let mut fixture = Fixture {
             model,
@@ -364,7 +365,7 @@ fn check_scene(scene: &Scene) {
 /// The COLMAP binary readers: `cameras.bin`, `images.bin`, `points3D.bin` split by
 /// [`files`]; a scene of all three is checked.
 pub fn colmap_bin(data: &[u8]) {
-    use gomatch_sim::colmap::{parse_cameras_bin, parse_images_bin, parse_points_bin};
+    use gomatch_sim::readers::colmap::{parse_cameras_bin, parse_images_bin, parse_points_bin};
     let Some([cameras, images, points]) = files(data) else {
         return;
     };
@@ -385,7 +386,7 @@ pub fn colmap_bin(data: &[u8]) {
 
 /// The COLMAP text readers, as [`colmap_bin`] (invalid UTF-8 is replaced first).
 pub fn colmap_txt(data: &[u8]) {
-    use gomatch_sim::colmap::{parse_cameras_txt, parse_images_txt, parse_points_txt};
+    use gomatch_sim::readers::colmap::{parse_cameras_txt, parse_images_txt, parse_points_txt};
     let Some([cameras, images, points]) = files(data) else {
         return;
     };
@@ -408,7 +409,7 @@ pub fn colmap_txt(data: &[u8]) {
 /// The BAL reader; a scene it reads is checked.
 pub fn bal(data: &[u8]) {
     let text = String::from_utf8_lossy(data);
-    if let Ok(scene) = gomatch_sim::bal::parse_bal(&text, "fuzz".into()) {
+    if let Ok(scene) = gomatch_sim::readers::bal::parse_bal(&text, "fuzz".into()) {
         check_scene(&scene);
     }
 }
@@ -416,7 +417,7 @@ pub fn bal(data: &[u8]) {
 /// The Bundler reader; a scene it reads is checked.
 pub fn bundler(data: &[u8]) {
     let text = String::from_utf8_lossy(data);
-    if let Ok(scene) = gomatch_sim::bundler::parse_bundler(&text, "fuzz".into()) {
+    if let Ok(scene) = gomatch_sim::readers::bundler::parse_bundler(&text, "fuzz".into()) {
         check_scene(&scene);
     }
 }
@@ -428,7 +429,9 @@ pub fn opensfm(data: &[u8]) {
         return;
     };
     let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
-    if let Ok(scene) = gomatch_sim::opensfm::parse_opensfm(&text(json), &text(csv), "fuzz".into()) {
+    if let Ok(scene) =
+        gomatch_sim::readers::opensfm::parse_opensfm(&text(json), &text(csv), "fuzz".into())
+    {
         check_scene(&scene);
     }
 }

@@ -10,7 +10,7 @@ use std::time::Duration;
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use gomatch::{Localizer, Map, Model};
-use gomatch_tools::view_features::{attach, build_view_features};
+use gomatch_blobs::view_features::{attach, build_view_features};
 use half::f16;
 
 mod workload;

@@ -13,8 +13,8 @@ use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use gomatch::nn::LayerTap;
 use gomatch::sinkhorn::{PlanScalar, Transport};
 use gomatch::{Matcher, Model, Observer, Precision, Stage};
-use gomatch_tools::convert::{convert_with, Options};
-use gomatch_tools::quantize::Rounding;
+use gomatch_blobs::convert::{convert_with, Options};
+use gomatch_blobs::quantize::Rounding;
 use half::f16;
 use workload::pair;
 

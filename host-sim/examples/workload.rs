@@ -21,9 +21,9 @@ use std::time::Instant;
 
 use gomatch::nn::dispatch::{limit_kernels, KernelSet};
 use gomatch::{Localizer, Map, Matcher, Model, Precision};
-use gomatch_tools::convert::{convert_with, Options};
-use gomatch_tools::quantize::Rounding;
-use gomatch_tools::view_features::{attach, build_view_features};
+use gomatch_blobs::convert::{convert_with, Options};
+use gomatch_blobs::quantize::Rounding;
+use gomatch_blobs::view_features::{attach, build_view_features};
 use half::f16;
 
 #[path = "../benches/workload/mod.rs"]

@@ -7,15 +7,15 @@ use std::time::Instant;
 use clap::Args as ClapArgs;
 use gomatch::localizer::Clock;
 
-use crate::scene::SceneSource;
+use crate::readers::SceneSource;
 
 /// Keypoint and per-view point capacity of the evaluated localizer (the paper's 1024).
 pub const CAPACITY: usize = 1024;
 
 /// The repository's shipped model, `models/gomatch-int8.bin`, found from the current
-/// folder or the executable's ([`gomatch_tools::files::shipped_model_path`]).
+/// folder or the executable's ([`gomatch_blobs::files::shipped_model_path`]).
 pub fn default_model_path() -> PathBuf {
-    gomatch_tools::files::shipped_model_path()
+    gomatch_blobs::files::shipped_model_path()
 }
 
 /// Microseconds from [`Instant`], the host's [`Clock`] for the core's stage timings.

@@ -1,6 +1,6 @@
 //! `gomatch-sim localize`: localizes new photos against a map blob (paper sec. 4.1, the
 //! device path: the core's [`Localizer::localize`]). A query is its keypoints (a text
-//! file, a `.npy` array or COLMAP's `database.db`, [`crate::keypoints`]), its camera (a
+//! file, a `.npy` array or COLMAP's `database.db`, [`crate::readers::keypoints`]), its camera (a
 //! COLMAP camera line, a camera of the map, or the database's) and the database views to
 //! match it against (names, an hloc pairs file, or a prior pose). Many queries come as an
 //! hloc query list (`name MODEL WIDTH HEIGHT PARAMS...` per line).
@@ -21,10 +21,10 @@ use half::f16;
 use nalgebra::UnitQuaternion;
 use serde::{Deserialize, Serialize};
 
-use crate::colmap::parse_camera_line;
 use crate::eval::{Counts, TimingsMs};
 use crate::host::{HostClock, CAPACITY};
-use crate::keypoints::{read_keypoint_file, ColmapDatabase, KeypointFile};
+use crate::readers::colmap::parse_camera_line;
+use crate::readers::keypoints::{read_keypoint_file, ColmapDatabase, KeypointFile};
 
 /// Thread stack for the localizer (its workspace lives on it; see `eval`).
 const WORKER_STACK: usize = 64 << 20;
@@ -523,20 +523,20 @@ fn localize_all(session: Session<'_>, queries: &[QuerySpec]) -> anyhow::Result<V
 
 /// Runs `gomatch-sim localize` and returns its report.
 pub fn run(args: &Args) -> anyhow::Result<LocalizeReport> {
-    let map_blob = gomatch_tools::files::read_map_blob(&args.map)?;
+    let map_blob = gomatch_blobs::files::read_map_blob(&args.map)?;
     let features_blob = match &args.view_features {
         Some(path) => std::fs::read(path).with_context(|| format!("reading {}", path.display()))?,
         None => Vec::new(),
     };
     let mut map = Map::from_bytes(&map_blob)?;
     if args.view_features.is_some() {
-        map = gomatch_tools::view_features::attach(map, &features_blob)?;
+        map = gomatch_blobs::view_features::attach(map, &features_blob)?;
     }
     let model_path = args
         .model
         .clone()
-        .unwrap_or_else(gomatch_tools::files::shipped_model_path);
-    let model_blob = gomatch_tools::files::read_model_blob(&model_path)?;
+        .unwrap_or_else(gomatch_blobs::files::shipped_model_path);
+    let model_blob = gomatch_blobs::files::read_model_blob(&model_path)?;
     let camera = match (&args.camera, args.camera_index) {
         (Some(line), _) => {
             Some(parse_camera_line(line).with_context(|| format!("--camera {line:?}"))?)

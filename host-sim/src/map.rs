@@ -14,9 +14,9 @@ use gomatch::map::{
 };
 use gomatch::pose::{MAX_BEARING, MIN_DEPTH_RATIO};
 
-use crate::colmap::camera_line;
 use crate::host::ModelArgs;
 use crate::protocol::{audit_projections, ProjectionAudit, ProtocolParams};
+use crate::readers::colmap::camera_line;
 use crate::scene::{ImageId, Keypoint, Scene};
 
 /// Bytes of one SIFT descriptor (128 x u8).
@@ -393,7 +393,7 @@ fn print_view_features(
     map_bytes: usize,
 ) -> anyhow::Result<()> {
     let blob = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    gomatch_tools::view_features::attach(map, &blob)?;
+    gomatch_blobs::view_features::attach(map, &blob)?;
     let features = gomatch::view_features::ViewFeatures::from_bytes(&blob)?;
     println!(
         "view features ({}): {} ({:.1}x the map) for N = {}, d = {}, model CRC-32 {:08x}",
@@ -429,7 +429,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             ));
         }
         MapCommand::Stats(stats) => {
-            let blob = gomatch_tools::files::read_map_blob(&stats.map)?;
+            let blob = gomatch_blobs::files::read_map_blob(&stats.map)?;
             let map = Map::from_bytes(&blob)?;
             print_stats(&StorageBreakdown::of(&map, blob.len()));
             if let Some(path) = &stats.view_features {
@@ -437,7 +437,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             }
         }
         MapCommand::List(list) => {
-            let blob = gomatch_tools::files::read_map_blob(&list.map)?;
+            let blob = gomatch_blobs::files::read_map_blob(&list.map)?;
             print_views(&Map::from_bytes(&blob)?)?;
         }
         MapCommand::Rank(rank) => print_rank(&rank.source.source()?.load_as_stored()?, rank.block),

@@ -1,12 +1,12 @@
 //! The common in-memory structure-from-motion model: cameras, posed images with their 2D
-//! keypoints, and 3D points with their tracks. Every reader (COLMAP, BAL, Bundler, OpenSfM)
-//! and the synthetic simulator produce a [`Scene`]; the localization protocol consumes one.
+//! keypoints, and 3D points with their tracks. Every reader (COLMAP, BAL, Bundler, OpenSfM,
+//! [`crate::readers`]) and the synthetic simulator produce a [`Scene`]; the localization
+//! protocol consumes one.
 //!
 //! Conventions (COLMAP's): poses map world to camera, `x_cam = R x + t`; the camera looks
 //! along +z; pixels have their origin at the top-left corner with y pointing down.
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::path::{Path, PathBuf};
 
 use gomatch::{Camera, Pose};
 use nalgebra::Vector3;
@@ -355,80 +355,6 @@ pub fn median(values: &mut [f64]) -> Option<f64> {
     })
 }
 
-/// Where a scene comes from, as named on the command line.
-#[derive(Debug, Clone, PartialEq)]
-pub enum SceneSource {
-    /// A COLMAP sparse model folder (`cameras`, `images`, `points3D`, `.bin` or `.txt`).
-    Colmap(PathBuf),
-    /// A Bundle Adjustment in the Large problem file.
-    Bal(PathBuf),
-    /// A Bundler v0.3 `bundle.out` file.
-    Bundler(PathBuf),
-    /// An OpenSfM dataset folder (or its `reconstruction.json`), with `tracks.csv`.
-    OpenSfm(PathBuf),
-}
-
-impl SceneSource {
-    /// Reads and validates the scene, with its keypoints in the orientation
-    /// [`Image::ranked_keypoints`] expects ([`Scene::orient_keypoint_order`]).
-    pub fn load(&self) -> anyhow::Result<Scene> {
-        let mut scene = self.load_as_stored()?;
-        scene.orient_keypoint_order(RANK_BLOCK);
-        Ok(scene)
-    }
-
-    /// Reads and validates the scene, keypoints in the order the files store them.
-    pub fn load_as_stored(&self) -> anyhow::Result<Scene> {
-        let scene = match self {
-            SceneSource::Colmap(dir) => crate::colmap::read_model(dir)?,
-            SceneSource::Bal(path) => crate::bal::read_bal(path)?,
-            SceneSource::Bundler(path) => crate::bundler::read_bundler(path)?,
-            SceneSource::OpenSfm(path) => crate::opensfm::read_opensfm(path)?,
-        };
-        scene.validate()?;
-        Ok(scene)
-    }
-}
-
-fn file_name(path: &Path) -> Option<String> {
-    path.file_name().map(|n| n.to_string_lossy().into_owned())
-}
-
-impl SceneSource {
-    /// Scene name `<kind>/<stem>`: the model folder for COLMAP (its parent scene folder for
-    /// the `<scene>/sparse/<n>` layout), the file stem for BAL, the folder holding a
-    /// Bundler `bundle.out`, and the OpenSfM dataset folder.
-    pub fn name(&self) -> String {
-        match self {
-            SceneSource::Colmap(dir) => {
-                let is_generic = |c: &str| c == "sparse" || c.chars().all(|ch| ch.is_ascii_digit());
-                let stem = dir
-                    .ancestors()
-                    .filter_map(file_name)
-                    .find(|c| !is_generic(c))
-                    .unwrap_or_default();
-                format!("colmap/{stem}")
-            }
-            SceneSource::Bal(path) => {
-                let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned());
-                format!("bal/{}", stem.unwrap_or_default())
-            }
-            SceneSource::Bundler(path) => {
-                let stem = match file_name(path).as_deref() {
-                    Some("bundle.out") => path.parent().and_then(file_name),
-                    _ => path.file_stem().map(|s| s.to_string_lossy().into_owned()),
-                };
-                format!("bundler/{}", stem.unwrap_or_default())
-            }
-            SceneSource::OpenSfm(path) => {
-                let (reconstruction, _) = crate::opensfm::model_files(path);
-                let folder = reconstruction.parent().and_then(file_name);
-                format!("opensfm/{}", folder.unwrap_or_default())
-            }
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -553,32 +479,5 @@ mod tests {
         assert_eq!(median(&mut [3.0, 1.0, 2.0]), Some(2.0));
         assert_eq!(median(&mut [4.0, 1.0, 2.0, 3.0]), Some(2.5));
         assert_eq!(median(&mut []), None);
-    }
-
-    #[test]
-    fn scene_names_follow_the_source_layout() {
-        let name = |s: SceneSource| s.name();
-        assert_eq!(
-            name(SceneSource::Colmap("/data/colmap/mouse".into())),
-            "colmap/mouse"
-        );
-        assert_eq!(
-            name(SceneSource::Colmap("/data/garden/sparse/0".into())),
-            "colmap/garden"
-        );
-        assert_eq!(
-            name(SceneSource::Bal("/d/problem-49-7776-pre.txt".into())),
-            "bal/problem-49-7776-pre"
-        );
-        assert_eq!(
-            name(SceneSource::Bundler("/data/kermit/bundle.out".into())),
-            "bundler/kermit"
-        );
-        assert_eq!(
-            name(SceneSource::OpenSfm(
-                "/data/opensfm/bathtub/reconstruction.json".into()
-            )),
-            "opensfm/bathtub"
-        );
     }
 }

@@ -1,5 +1,5 @@
 //! `gomatch-sim map features`: writes the view-features blob of a map
-//! ([`gomatch_tools::view_features`]) for one model and capacity. The localizer then starts
+//! ([`gomatch_blobs::view_features`]) for one model and capacity. The localizer then starts
 //! each query-view pair at the cross attention; the matches and poses are the same bits.
 
 use std::path::PathBuf;
@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::Args as ClapArgs;
 use gomatch::{Map, Model};
-use gomatch_tools::view_features::{attach, build_view_features};
+use gomatch_blobs::view_features::{attach, build_view_features};
 
 /// Arguments of `map features`.
 #[derive(Debug, Clone, ClapArgs)]
@@ -29,13 +29,13 @@ pub struct FeaturesArgs {
 
 /// Runs `map features`.
 pub fn run(args: &FeaturesArgs) -> anyhow::Result<()> {
-    let map_blob = gomatch_tools::files::read_map_blob(&args.map)?;
+    let map_blob = gomatch_blobs::files::read_map_blob(&args.map)?;
     let map = Map::from_bytes(&map_blob)?;
     let model_path = args
         .model
         .clone()
-        .unwrap_or_else(gomatch_tools::files::shipped_model_path);
-    let model_blob = gomatch_tools::files::read_model_blob(&model_path)?;
+        .unwrap_or_else(gomatch_blobs::files::shipped_model_path);
+    let model_blob = gomatch_blobs::files::read_model_blob(&model_path)?;
     let model = Model::from_bytes(&model_blob)?;
     let blob = build_view_features(&model, &map, args.capacity)?;
     std::fs::write(&args.output, &blob)

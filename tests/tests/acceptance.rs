@@ -5,13 +5,13 @@
 use std::path::Path;
 
 use gomatch::acceptance::{AcceptanceRule, Evidence, FEATURES};
-use gomatch_sim::eval::{evaluate, read_rule, EvalOptions, Matching, Report};
-use gomatch_sim::fit::{
+use gomatch_sim::eval::fit::{
     fit, run, threshold_for, threshold_keeping, Args, Example, FitOutput, Operating, Scores,
 };
+use gomatch_sim::eval::{evaluate, read_rule, EvalOptions, Matching, Report};
 use gomatch_sim::host::CAPACITY;
+use gomatch_sim::protocol::synthetic::synthetic_scene;
 use gomatch_sim::protocol::ProtocolParams;
-use gomatch_sim::synthetic::synthetic_scene;
 
 /// Evidence whose pose is right with many, spread, multi-view inliers, or wrong with few.
 fn example(i: u32, right: bool) -> Example {

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 
 use gomatch::nn::SMALL_SET;
 use gomatch::Precision;
-use gomatch_sim::conform::{conform, conform_blob, PlanArg, Report};
+use gomatch_sim::eval::conform::{conform, conform_blob, PlanArg, Report};
 
 fn fixtures() -> Option<Vec<PathBuf>> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/reference/fixtures");
@@ -119,7 +119,7 @@ fn int8_weights_keep_the_matches() {
     let root = fixtures[0].parent().expect("fixture root");
     let checkpoint = std::fs::read(root.join("weights.safetensors")).expect("weights");
     let (blob, _) =
-        gomatch_tools::convert::convert(&checkpoint, Precision::Int8).expect("int8 conversion");
+        gomatch_blobs::convert::convert(&checkpoint, Precision::Int8).expect("int8 conversion");
     for fixture in &fixtures {
         let report = conform_blob(fixture, &blob, PlanArg::F32)
             .unwrap_or_else(|e| panic!("{}: {e:#}", fixture.display()));

@@ -3,11 +3,11 @@
 
 use std::path::{Path, PathBuf};
 
-use gomatch_sim::dataset::{run, Args};
 use gomatch_sim::host::ScenesArgs;
+use gomatch_sim::protocol::dataset::{run, Args};
 use gomatch_sim::protocol::query_sample;
-use gomatch_sim::scene::SceneSource;
-use gomatch_sim::synthetic::synthetic_scene;
+use gomatch_sim::protocol::synthetic::synthetic_scene;
+use gomatch_sim::readers::SceneSource;
 use safetensors::{Dtype, SafeTensors};
 
 fn args(output: PathBuf) -> Args {

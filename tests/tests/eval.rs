@@ -19,9 +19,10 @@ use gomatch_sim::eval::{
 };
 use gomatch_sim::host::CAPACITY;
 use gomatch_sim::map::{build_map, map_point_index};
+use gomatch_sim::protocol::synthetic::synthetic_scene;
 use gomatch_sim::protocol::ProtocolParams;
-use gomatch_sim::scene::{Scene, SceneSource};
-use gomatch_sim::synthetic::synthetic_scene;
+use gomatch_sim::readers::SceneSource;
+use gomatch_sim::scene::Scene;
 
 fn options(k: usize, queries: usize, threads: usize) -> EvalOptions {
     EvalOptions {

@@ -12,9 +12,9 @@ use std::path::{Path, PathBuf};
 
 use gomatch::link::{self, encode_frame, LocalizeRequest, Request, RequestBody, Views};
 use gomatch::{Map, Model};
+use gomatch_blobs::view_features::build_view_features;
+use gomatch_sim::device::tiny::{tiny_query, tiny_scene, tiny_scene_opensfm, tiny_scene_txt};
 use gomatch_sim::scene::Scene;
-use gomatch_sim::tiny::{tiny_query, tiny_scene, tiny_scene_opensfm, tiny_scene_txt};
-use gomatch_tools::view_features::build_view_features;
 use nalgebra::UnitQuaternion;
 
 /// Largest seed file.

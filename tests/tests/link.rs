@@ -13,16 +13,18 @@ use std::path::Path;
 use gomatch::link::{self, LinkError, LocalizeReply, Request, RequestBody, ResponseBody};
 use gomatch::weights::Precision;
 use gomatch::{Localizer, Map, Model};
+use gomatch_blobs::convert::{convert_with, Options};
+use gomatch_sim::device::faulty_link::{print_report, soak, SoakConfig, SoakReport};
+use gomatch_sim::device::firmware_data::{firmware_data, FIRMWARE_CAPACITY, FIRMWARE_SEED};
+use gomatch_sim::device::firmware_reply::{
+    firmware_reply_from_files, reply_lines, AARCH64_CAPACITY,
+};
 use gomatch_sim::device::{run_session, LinkQuery};
 use gomatch_sim::eval::protocol_samples;
-use gomatch_sim::faulty_link::{print_report, soak, SoakConfig, SoakReport};
-use gomatch_sim::firmware_data::{firmware_data, FIRMWARE_CAPACITY, FIRMWARE_SEED};
-use gomatch_sim::firmware_reply::{firmware_reply_from_files, reply_lines, AARCH64_CAPACITY};
 use gomatch_sim::host::CAPACITY;
 use gomatch_sim::map::build_map;
+use gomatch_sim::protocol::synthetic::synthetic_scene;
 use gomatch_sim::protocol::ProtocolParams;
-use gomatch_sim::synthetic::synthetic_scene;
-use gomatch_tools::convert::{convert_with, Options};
 use half::f16;
 
 fn fixture_model() -> Option<Vec<u8>> {

@@ -13,11 +13,12 @@ use std::path::{Path, PathBuf};
 
 use clap::Parser;
 use gomatch::{Camera, Pose};
-use gomatch_sim::colmap::camera_line;
 use gomatch_sim::eval::TimingsMs;
 use gomatch_sim::localize::{parse_pose, run, Args, ColmapPose, LocalizeReport, QueryOutcome};
 use gomatch_sim::map::{build_map, exclude_images};
-use gomatch_sim::scene::{Image, Scene, SceneSource};
+use gomatch_sim::readers::colmap::camera_line;
+use gomatch_sim::readers::SceneSource;
+use gomatch_sim::scene::{Image, Scene};
 use rusqlite::Connection;
 
 /// Mean pixel distance between the image's triangulated 3D points projected with the true

@@ -15,11 +15,11 @@ use gomatch::{
     Camera, Correspondence, Error, Localization, Localizer, LocalizerConfig, Model, Query,
     ViewSelection,
 };
+use gomatch_blobs::convert::{convert_with, Options};
 use gomatch_sim::eval::{protocol_samples, query_pixels};
 use gomatch_sim::map::build_map;
+use gomatch_sim::protocol::synthetic::synthetic_scene;
 use gomatch_sim::protocol::{ProtocolParams, QuerySample};
-use gomatch_sim::synthetic::synthetic_scene;
-use gomatch_tools::convert::{convert_with, Options};
 use half::f16;
 
 /// Small capacity, so that the synthetic views (a few hundred to ~1500 points) overflow it.

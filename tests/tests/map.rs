@@ -10,8 +10,9 @@ use gomatch::error::BlobKind;
 use gomatch::map::Map;
 use gomatch::Error;
 use gomatch_sim::map::{build_map, exclude_images};
-use gomatch_sim::scene::{Scene, SceneSource};
-use gomatch_sim::synthetic::synthetic_scene;
+use gomatch_sim::protocol::synthetic::synthetic_scene;
+use gomatch_sim::readers::SceneSource;
+use gomatch_sim::scene::Scene;
 use proptest::prelude::*;
 
 /// Checks that the map holds exactly the scene's observed points, cameras and views.

@@ -9,12 +9,12 @@ use gomatch::link::{rx_frame_len, Device};
 use gomatch::view_features::blob_len;
 use gomatch::weights::Precision;
 use gomatch::Localizer;
-use gomatch_tools::convert::{convert_with, Options, PrecisionArg};
+use gomatch_blobs::convert::{convert_with, Options, PrecisionArg};
+use gomatch_blobs::view_features::view_bearings;
 use gomatch_tools::mem_report::{
     budget_violations, human_bytes, markdown, measure, report, Args, CountingAllocator, Row,
     Sinkhorn, BUILTIN_MAP,
 };
-use gomatch_tools::view_features::view_bearings;
 use half::f16;
 
 #[global_allocator]

@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use gomatch::RansacConfig;
-use gomatch_sim::pnp::{
+use gomatch_sim::eval::pnp::{
     evaluate_file, list_set_files, load_anchors, load_set_file, ANCHOR_MAX_ITERATIONS,
 };
 

@@ -16,7 +16,8 @@ use gomatch_sim::map::{build_map, map_point_index};
 use gomatch_sim::protocol::{
     query_reprojection_error, query_sample, ProtocolParams, QuerySample, ViewSample,
 };
-use gomatch_sim::scene::{ImageId, Keypoint, Point3d, PointId, Scene, SceneSource, TrackElement};
+use gomatch_sim::readers::SceneSource;
+use gomatch_sim::scene::{ImageId, Keypoint, Point3d, PointId, Scene, TrackElement};
 
 /// Depth of the injected points in the camera they sit at: the 2.3e-10.
 const CENTRE_DEPTH: f64 = 2.3e-10;

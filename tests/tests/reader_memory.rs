@@ -7,9 +7,9 @@
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use gomatch_sim::bal::parse_bal;
-use gomatch_sim::bundler::parse_bundler;
-use gomatch_sim::parse::FormatError;
+use gomatch_sim::readers::bal::parse_bal;
+use gomatch_sim::readers::bundler::parse_bundler;
+use gomatch_sim::readers::parse::FormatError;
 
 struct Counting;
 

@@ -4,7 +4,8 @@
 
 use std::path::PathBuf;
 
-use gomatch_sim::scene::{median, SceneSource};
+use gomatch_sim::readers::SceneSource;
+use gomatch_sim::scene::median;
 
 /// `shared/data`, located from this crate's manifest (`<repo>/tests`), or `None` with a
 /// printed reason.
@@ -249,7 +250,7 @@ fn colmap_text_export_round_trips_a_binary_model() {
         .load()
         .unwrap();
     let dir = std::env::temp_dir().join(format!("gomatch-colmap-roundtrip-{}", std::process::id()));
-    gomatch_sim::colmap::write_model_txt(&scene, &dir).unwrap();
+    gomatch_sim::readers::colmap::write_model_txt(&scene, &dir).unwrap();
     let back = SceneSource::Colmap(dir.clone()).load().unwrap();
     std::fs::remove_dir_all(&dir).unwrap();
     assert_eq!(back.cameras, scene.cameras);
@@ -347,8 +348,8 @@ fn protocol_ground_truth_agrees_with_the_models_triangulation() {
 #[test]
 fn protocol_ground_truth_on_synthetic_scenes_follows_the_triangulation() {
     use gomatch::Pose;
+    use gomatch_sim::protocol::synthetic::synthetic_scene;
     use gomatch_sim::protocol::{query_sample, select_queries, ProtocolParams};
-    use gomatch_sim::synthetic::synthetic_scene;
     use nalgebra::{Rotation3, Vector3};
 
     let params = ProtocolParams {

@@ -8,8 +8,8 @@ use std::sync::Mutex;
 use gomatch::localizer::Localization;
 use gomatch::view_features::ViewFeatures;
 use gomatch::{Error, Localizer, LocalizerConfig, Map, Model, Query, ViewSelection};
+use gomatch_blobs::view_features::{attach, build_view_features};
 use gomatch_tools::mem_report::{map_query, BUILTIN_MAP};
-use gomatch_tools::view_features::{attach, build_view_features};
 use half::f16;
 
 const CAPACITY: usize = 256;
@@ -101,7 +101,9 @@ fn features_of_another_map_are_refused() {
     let model_blob = shipped("gomatch-int8.bin");
     let model = Model::from_bytes(&model_blob).expect("model");
     let map = Map::from_bytes(BUILTIN_MAP).expect("map");
-    let tiny_blob = gomatch_sim::tiny::tiny_map_blob(gomatch_sim::tiny::TINY_POINTS).expect("tiny");
+    let tiny_blob =
+        gomatch_sim::device::tiny::tiny_map_blob(gomatch_sim::device::tiny::TINY_POINTS)
+            .expect("tiny");
     let tiny = Map::from_bytes(&tiny_blob).expect("tiny map");
     let features = build_view_features(&model, &tiny, CAPACITY).expect("features");
     let parsed = ViewFeatures::from_bytes(&features).expect("valid");

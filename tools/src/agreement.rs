@@ -1,6 +1,6 @@
 //! `gomatch-tools agreement`: how closely one model blob reproduces another's matches on
 //! synthetic query-view pairs drawn like the reference fixtures
-//! ([`crate::calibration::synthetic_pairs`], seeds apart from the calibration seed), run
+//! ([`gomatch_blobs::calibration::synthetic_pairs`], seeds apart from the calibration seed), run
 //! through `gomatch::Matcher`. Per pair the agreement is `|A ∩ R| / |A ∪ R|` of the
 //! mutual-match sets `(i3d, i2d)` of the model `A` and the reference model `R`, as
 //! `gomatch-sim conform` measures it against the reference implementation.
@@ -12,7 +12,7 @@ use std::sync::Mutex;
 use anyhow::{Context, Result};
 use gomatch::{Matcher, Model};
 
-use crate::calibration::{synthetic_pairs, Pair};
+use gomatch_blobs::calibration::{synthetic_pairs, Pair};
 
 /// Command-line arguments of `agreement`.
 #[derive(clap::Args, Debug)]

@@ -1,12 +1,8 @@
-//! Checkpoint conversion and reports around the `gomatch` core. Each subcommand of the
-//! `gomatch-tools` binary is a module with an `Args` struct and a `run` function.
+//! Reports around the `gomatch` core; the `gomatch-tools` binary also runs the checkpoint
+//! converter of `gomatch_blobs`. Each subcommand is a module with an `Args` struct and a
+//! `run` function.
 
 pub mod agreement;
-pub mod calibration;
-pub mod convert;
-pub mod files;
 pub mod image_layout;
 pub mod mem_report;
-pub mod quantize;
 pub mod sensitivity;
-pub mod view_features;

@@ -20,7 +20,7 @@ enum Command {
     /// Print the version of the core library.
     Version,
     /// Convert a float32 safetensors checkpoint (reference layout) to a model blob.
-    Convert(gomatch_tools::convert::Args),
+    Convert(gomatch_blobs::convert::Args),
     /// Agreement of one model blob's matches with another's on synthetic pairs.
     Agreement(gomatch_tools::agreement::Args),
     /// Per-tensor int8 sensitivity of the matches.
@@ -32,7 +32,7 @@ enum Command {
 fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Version => println!("gomatch {}", env!("CARGO_PKG_VERSION")),
-        Command::Convert(args) => gomatch_tools::convert::run(&args)?,
+        Command::Convert(args) => gomatch_blobs::convert::run(&args)?,
         Command::Agreement(args) => gomatch_tools::agreement::run(&args)?,
         Command::Sensitivity(args) => gomatch_tools::sensitivity::run(&args)?,
         Command::MemReport(args) => gomatch_tools::mem_report::run(&args)?,

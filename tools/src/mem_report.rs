@@ -39,10 +39,10 @@ use half::f16;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
-use crate::convert::{convert, PrecisionArg};
-use crate::files::{find_default, read_map_blob, read_model_blob};
 use crate::image_layout;
-use crate::view_features::build_view_features;
+use gomatch_blobs::convert::{convert, PrecisionArg};
+use gomatch_blobs::files::{find_default, read_map_blob, read_model_blob};
+use gomatch_blobs::view_features::build_view_features;
 
 /// Capacities reported by default.
 pub const CAPACITIES: [usize; 4] = [128, 256, 512, 1024];

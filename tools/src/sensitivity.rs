@@ -10,12 +10,12 @@ use gomatch::weights::tensor_spec;
 use gomatch::Precision;
 
 use crate::agreement::ReferenceMatches;
-use crate::calibration::synthetic_pairs;
-use crate::convert::{
+use gomatch_blobs::calibration::synthetic_pairs;
+use gomatch_blobs::convert::{
     float_tensors, fold_residual_blocks, int8_tensors, precisions, write_blob, write_blob_with,
     Options,
 };
-use crate::quantize::{Rounding, ScaleSearch};
+use gomatch_blobs::quantize::{Rounding, ScaleSearch};
 
 /// Command-line arguments of `sensitivity`.
 #[derive(clap::Args, Debug)]

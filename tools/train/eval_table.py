@@ -61,7 +61,7 @@ def auc_means(reports: list[dict]) -> list[float]:
 
 def error_auc(errors: list[float], threshold: float) -> float:
     """Area under the recall curve of the errors up to `threshold`, over the threshold, in percent: the
-    trapezoidal rule of `error_auc` in host-sim/src/protocol.rs (a failed query has an infinite error)."""
+    trapezoidal rule of `error_auc` in host-sim/src/protocol/mod.rs (a failed query has an infinite error)."""
     area, last_error, last_recall = 0.0, 0.0, 0.0
     for i, error in enumerate(sorted(errors)):
         if error >= threshold:

@@ -3,11 +3,10 @@
 use embedded_hal::digital::OutputPin;
 use embedded_io::{Read, Write};
 
-use super::framing::{decode_frame, encode_frame};
-use super::{
-    narrow, rx_frame_len, LinkError, Request, RequestBody, Response, ResponseBody, Served, Service,
-    TX_FRAME_LEN,
-};
+use super::framing::{decode_frame, encode_frame, rx_frame_len, TX_FRAME_LEN};
+use super::messages::{LinkError, Request, RequestBody, Response, ResponseBody};
+use super::service::{Served, Service};
+use super::wire::narrow;
 use crate::sinkhorn::PlanScalar;
 
 /// Bytes read from the stream at once.

@@ -2,7 +2,8 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{max_request_len, LinkError, CHECKSUM_BYTES, MAX_RESPONSE_LEN};
+use super::messages::LinkError;
+use super::wire::{max_request_len, CHECKSUM_BYTES, MAX_RESPONSE_LEN};
 
 /// Bytes of the longest reply frame, delimiter included.
 pub const TX_FRAME_LEN: usize = cobs_len(MAX_RESPONSE_LEN + CHECKSUM_BYTES) + 1;

@@ -4,7 +4,7 @@ use core::fmt::Write as _;
 
 use serde::{Deserialize, Serialize};
 
-use super::{narrow, KEYPOINT_BYTES, REASON_LEN};
+use super::wire::{narrow, KEYPOINT_BYTES, REASON_LEN};
 use crate::camera::Camera;
 use crate::error::{Error, Input};
 use crate::localizer::{Failure, Localization, MatchCounts, StageTimings, MAX_VIEWS};

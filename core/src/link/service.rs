@@ -4,11 +4,11 @@ use core::convert::Infallible;
 
 use embedded_hal::digital::{ErrorType, OutputPin};
 
-use super::messages::rejected;
-use super::{
-    decode_keypoints, narrow, DeviceInfo, LinkError, LocalizeReply, LocalizeRequest, MapInfo,
-    ModelInfo, Rejection, ResponseBody, Views, KEYPOINT_BYTES, PROTOCOL_VERSION,
+use super::messages::{
+    decode_keypoints, rejected, DeviceInfo, LinkError, LocalizeReply, LocalizeRequest, MapInfo,
+    ModelInfo, Rejection, ResponseBody, Views,
 };
+use super::wire::{narrow, KEYPOINT_BYTES, PROTOCOL_VERSION};
 use crate::localizer::{Clock, Localizer, LocalizerConfig, Query, ViewSelection, MAX_VIEWS};
 use crate::map::{Map, MAP_VERSION};
 use crate::sinkhorn::PlanScalar;

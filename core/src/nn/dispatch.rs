@@ -8,19 +8,21 @@
 //! has them (checked once with `cpuid` and `xgetbv`, which work in `no_std`, and cached), and
 //! [`Portable`] otherwise. A fused multiply-add is exactly specified and the integer sums
 //! are exact, so every variant gives the same bits (see [`super::fma`]).
+//!
+//! This module knows no kernel: one with vector variants of its own (the integer kernel,
+//! instance norm's sums, the transposes) picks them with the kernel set's x86-64 tokens
+//! ([`Fma::x86_avx2`], [`Fma::x86_avx512`]) in a trait of its own over every [`Fma`]
+//! ([`super::integer::IntegerVariants`], [`super::norm::NormVariants`],
+//! [`super::transpose::TransposeVariants`]).
 
 use core::sync::atomic::{AtomicU8, Ordering};
 
 use super::fma::mul_add;
-use super::integer::{
-    self, BlockAffine, BlockSums, OutputBlock, QuantizedTile, TilePairs, WeightPairs,
-};
-use super::norm::{self, RowPass, StatSum};
-use super::transpose;
 
 /// The CPU's multiply-add instructions: a fused multiply-add `a * b + c` with a single
-/// rounding (the f32 kernels) and the exact int16 pair multiply-add (the integer kernel);
-/// also its exact f16 <-> f32 conversions (Sinkhorn's f16 cost rows).
+/// rounding (the f32 kernels) and its vector lanes; also its exact f16 <-> f32 conversions
+/// (Sinkhorn's f16 cost rows), and on x86-64 the tokens with which a kernel picks its vector
+/// variant (such as the integer kernel's exact int16 pair multiply-adds).
 pub trait Fma: Copy {
     /// Whether the CPU has 32 vector registers of 16 f32 lanes (AVX-512): the f32 linear
     /// kernel then accumulates two register blocks side by side and attention's register
@@ -64,78 +66,19 @@ pub trait Fma: Copy {
         add_lanes(x, acc);
     }
 
-    /// The integer kernel's register block at point `p` of a tile
-    /// ([`integer::block_sums`], with NEON on AArch64 and `smlad` on ARMv7E-M; exact, so every implementation gives
-    /// the same sums).
+    /// The AVX2 token where this kernel set has AVX2, FMA and F16C: a kernel with an AVX2
+    /// variant runs it with the token ([`X86Fma`]), else its portable code.
+    #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    fn pair_sums(self, w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
-        #[cfg(all(target_arch = "aarch64", target_feature = "neon"))]
-        return integer::block_sums_neon(w, x, p);
-        #[cfg(all(feature = "arm-dsp", target_arch = "arm"))]
-        return integer::block_sums_dsp(w, x, p);
-        #[cfg(not(any(
-            all(target_arch = "aarch64", target_feature = "neon"),
-            all(feature = "arm-dsp", target_arch = "arm")
-        )))]
-        integer::block_sums(w, x, p)
+    fn x86_avx2(self) -> Option<X86Fma> {
+        None
     }
 
-    /// [`integer::scaled_group_sums`]: one row block of the integer kernel over a tile,
-    /// with the rows' scales and biases (AVX2 on x86-64 keeps the outputs in registers; the
-    /// integer sums are exact and the f32 steps the same, so every path gives the same bits).
+    /// The AVX-512 token where this kernel set has AVX-512 F, BW, VL and VNNI besides.
+    #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    fn scaled_group_sums(
-        self,
-        w: &[WeightPairs],
-        affine: &BlockAffine,
-        tile: QuantizedTile<'_>,
-    ) -> OutputBlock {
-        integer::scaled_group_sums(self, w, affine, tile)
-    }
-
-    /// [`Fma::scaled_group_sums`] of two consecutive row blocks (`w` holds both, `pairs`
-    /// each; used where [`Fma::WIDE_REGISTERS`]: AVX-512 shares each tile load between the
-    /// two, the same sums).
-    #[inline(always)]
-    fn scaled_group_sums_pair(
-        self,
-        w: &[WeightPairs],
-        pairs: usize,
-        affine: [&BlockAffine; 2],
-        tile: QuantizedTile<'_>,
-    ) -> [OutputBlock; 2] {
-        integer::scaled_group_sums_pair(self, w, pairs, affine, tile)
-    }
-
-    /// [`integer::interleave_pairs`]: int8 weight rows laid out as the integer kernel's
-    /// register-block slots (SSE4.1 on x86-64; a pure permutation, so every path gives the
-    /// same slots).
-    #[inline(always)]
-    fn interleave_pairs(self, rows: [&[u8]; integer::ROWS], out: &mut [WeightPairs]) {
-        integer::interleave_pairs(rows, out);
-    }
-
-    /// [`norm::row_sums`]: instance norm's running sums of `G` rows side by side (AVX2 on
-    /// x86-64 for sixteen rows, and for thirty-two with AVX-512's 32 registers, with the
-    /// default f64 statistics; the same additions in the same order, so every path gives the
-    /// same bits).
-    #[inline(always)]
-    fn row_sums<const G: usize>(self, pass: RowPass<'_, G>) -> [StatSum; G] {
-        norm::row_sums(pass)
-    }
-
-    /// [`transpose::point_major`]: `G` channel-major rows laid out point by point (AVX2
-    /// 8 x 8 transposes on x86-64; a pure permutation, so every path gives the same values).
-    #[inline(always)]
-    fn point_major<const G: usize>(self, rows: &[f32], n: usize, out: &mut [f32]) {
-        transpose::point_major::<G>(rows, n, out);
-    }
-
-    /// [`transpose::channel_major`]: `n` points of `G` lanes laid out as `G` channel-major
-    /// rows (AVX2 8 x 8 transposes on x86-64; a pure permutation, the same values).
-    #[inline(always)]
-    fn channel_major<const G: usize>(self, points: &[f32], n: usize, out: &mut [f32]) {
-        transpose::channel_major::<G>(points, n, out);
+    fn x86_avx512(self) -> Option<X86Fma<true>> {
+        None
     }
 
     /// `out[i] = bits[i]` read as an f16 (`out` as long as `bits`), exact for every finite
@@ -379,6 +322,16 @@ impl<const AVX512: bool> Fma for X86Fma<AVX512> {
     const WIDE_REGISTERS: bool = AVX512;
 
     #[inline(always)]
+    fn x86_avx2(self) -> Option<X86Fma> {
+        Some(self.avx2())
+    }
+
+    #[inline(always)]
+    fn x86_avx512(self) -> Option<X86Fma<true>> {
+        self.avx512()
+    }
+
+    #[inline(always)]
     #[allow(unsafe_code)]
     fn mul_add(self, a: f32, b: f32, c: f32) -> f32 {
         use core::arch::x86_64::{_mm_cvtss_f32, _mm_fmadd_ss, _mm_set_ss};
@@ -435,60 +388,6 @@ impl<const AVX512: bool> Fma for X86Fma<AVX512> {
             },
             _ => add_lanes(x, acc),
         }
-    }
-
-    #[inline(always)]
-    fn scaled_group_sums(
-        self,
-        w: &[WeightPairs],
-        affine: &BlockAffine,
-        tile: QuantizedTile<'_>,
-    ) -> OutputBlock {
-        if let Some(avx512) = self.avx512() {
-            let [y] = integer::scaled_group_sums_avx512(avx512, [w], [affine], tile);
-            return y;
-        }
-        integer::scaled_group_sums_avx2(self.avx2(), w, affine, tile)
-    }
-
-    #[inline(always)]
-    fn scaled_group_sums_pair(
-        self,
-        w: &[WeightPairs],
-        pairs: usize,
-        affine: [&BlockAffine; 2],
-        tile: QuantizedTile<'_>,
-    ) -> [OutputBlock; 2] {
-        match self.avx512() {
-            Some(avx512) => {
-                let (first, second) = w.split_at(pairs.min(w.len()));
-                integer::scaled_group_sums_avx512(avx512, [first, second], affine, tile)
-            }
-            None => integer::scaled_group_sums_pair(self, w, pairs, affine, tile),
-        }
-    }
-
-    #[inline(always)]
-    fn interleave_pairs(self, rows: [&[u8]; integer::ROWS], out: &mut [WeightPairs]) {
-        integer::interleave_pairs_sse41(self.avx2(), rows, out);
-    }
-
-    #[inline(always)]
-    fn point_major<const G: usize>(self, rows: &[f32], n: usize, out: &mut [f32]) {
-        transpose::point_major_avx2::<G>(self.avx2(), rows, n, out);
-    }
-
-    #[inline(always)]
-    fn channel_major<const G: usize>(self, points: &[f32], n: usize, out: &mut [f32]) {
-        transpose::channel_major_avx2::<G>(self.avx2(), points, n, out);
-    }
-
-    #[inline(always)]
-    fn row_sums<const G: usize>(self, pass: RowPass<'_, G>) -> [StatSum; G] {
-        #[cfg(not(feature = "f32-statistics"))]
-        return norm::row_sums_x86(self, pass);
-        #[cfg(feature = "f32-statistics")]
-        norm::row_sums(pass)
     }
 
     #[inline(always)]

@@ -13,7 +13,8 @@
 
 use super::blocking;
 use super::dispatch::Fma;
-use super::linear::{Input, WeightRows, MAX_INPUT};
+use super::operands::{Input, WeightRows};
+use crate::limits::MAX_INPUT;
 
 /// Points quantized together: one tile of the input, reused by every output row.
 pub const TILE: usize = 16;
@@ -41,6 +42,83 @@ pub type TilePairs = [Pair; TILE];
 /// The sums of one register block.
 pub type BlockSums = [[i32; POINTS]; ROWS];
 
+/// The integer kernel's steps with the instructions of a kernel set ([`Fma`]): each step's
+/// vector variant where the set has its instructions, else its portable code (exact integer
+/// sums and the same f32 steps, so every variant gives the same bits). Every [`Fma`] has
+/// them.
+pub trait IntegerVariants: Fma {
+    /// The integer kernel's register block at point `p` of a tile ([`block_sums`], with NEON
+    /// on AArch64 and `smlad` on ARMv7E-M; exact, so every implementation gives the same
+    /// sums).
+    #[inline(always)]
+    fn pair_sums(self, w: &[WeightPairs], x: &[TilePairs], p: usize) -> BlockSums {
+        #[cfg(all(target_arch = "aarch64", target_feature = "neon"))]
+        return block_sums_neon(w, x, p);
+        #[cfg(all(feature = "arm-dsp", target_arch = "arm"))]
+        return block_sums_dsp(w, x, p);
+        #[cfg(not(any(
+            all(target_arch = "aarch64", target_feature = "neon"),
+            all(feature = "arm-dsp", target_arch = "arm")
+        )))]
+        block_sums(w, x, p)
+    }
+
+    /// [`scaled_group_sums`]: one row block of the integer kernel over a tile, with the rows'
+    /// scales and biases ([`scaled_group_sums_avx512`] or [`scaled_group_sums_avx2`] on
+    /// x86-64, which keep the outputs in registers).
+    #[inline(always)]
+    fn scaled_group_sums(
+        self,
+        w: &[WeightPairs],
+        affine: &BlockAffine,
+        tile: QuantizedTile<'_>,
+    ) -> OutputBlock {
+        #[cfg(target_arch = "x86_64")]
+        if let Some(avx512) = self.x86_avx512() {
+            let [y] = scaled_group_sums_avx512(avx512, [w], [affine], tile);
+            return y;
+        }
+        #[cfg(target_arch = "x86_64")]
+        if let Some(avx2) = self.x86_avx2() {
+            return scaled_group_sums_avx2(avx2, w, affine, tile);
+        }
+        scaled_group_sums(self, w, affine, tile)
+    }
+
+    /// [`IntegerVariants::scaled_group_sums`] of two consecutive row blocks (`w` holds both,
+    /// `pairs` each; used where [`Fma::WIDE_REGISTERS`]: AVX-512 shares each tile load
+    /// between the two, the same sums).
+    #[inline(always)]
+    fn scaled_group_sums_pair(
+        self,
+        w: &[WeightPairs],
+        pairs: usize,
+        affine: [&BlockAffine; 2],
+        tile: QuantizedTile<'_>,
+    ) -> [OutputBlock; 2] {
+        #[cfg(target_arch = "x86_64")]
+        if let Some(avx512) = self.x86_avx512() {
+            let (first, second) = w.split_at(pairs.min(w.len()));
+            return scaled_group_sums_avx512(avx512, [first, second], affine, tile);
+        }
+        scaled_group_sums_pair(self, w, pairs, affine, tile)
+    }
+
+    /// [`interleave_pairs`]: int8 weight rows laid out as the integer kernel's
+    /// register-block slots ([`interleave_pairs_sse41`] on x86-64; a pure permutation, so
+    /// every path gives the same slots).
+    #[inline(always)]
+    fn interleave_pairs(self, rows: [&[u8]; ROWS], out: &mut [WeightPairs]) {
+        #[cfg(target_arch = "x86_64")]
+        if let Some(avx2) = self.x86_avx2() {
+            return interleave_pairs_sse41(avx2, rows, out);
+        }
+        interleave_pairs(rows, out);
+    }
+}
+
+impl<F: Fma> IntegerVariants for F {}
+
 /// Weight panels and activation tiles on 4-byte boundaries, so that the Cortex-M7 kernel
 /// reads two pairs with one `ldrd` (which faults on an unaligned address).
 #[repr(C, align(4))]
@@ -54,7 +132,7 @@ pub struct WordAligned<T>(pub T);
 /// group has its own point scales; a part of a concatenated input starts a fresh pair and
 /// group) into one tile of all the input's pairs; then each row block of the panel passes
 /// over the tile group by group, and each group's exact sum, times its point scales, is
-/// added to the block's outputs in f32, group after group ([`Fma::scaled_group_sums`]).
+/// added to the block's outputs in f32, group after group ([`IntegerVariants::scaled_group_sums`]).
 #[inline(always)]
 pub fn linear_int8<F: Fma, W: WeightRows>(
     fma: F,
@@ -163,7 +241,7 @@ const MAX_PAIRS: usize = MAX_INPUT / 2 + 2;
 const MAX_GROUPS: usize = MAX_INPUT / GROUP + 3;
 
 /// The outputs of one row block over a tile: for each group, in order, its exact sums
-/// ([`Fma::pair_sums`]) times its point scales, added in f32 to outputs that start at zero
+/// ([`IntegerVariants::pair_sums`]) times its point scales, added in f32 to outputs that start at zero
 /// (`y += sum as f32 * scale`), then each row's `y * scale + bias` (`affine`).
 #[inline(always)]
 pub fn scaled_group_sums<F: Fma>(
@@ -189,7 +267,8 @@ pub fn scaled_group_sums<F: Fma>(
     y
 }
 
-/// [`Fma::scaled_group_sums`] of two consecutive row blocks: `w` holds both, `pairs` each.
+/// [`IntegerVariants::scaled_group_sums`] of two consecutive row blocks: `w` holds both,
+/// `pairs` each.
 #[inline(always)]
 pub fn scaled_group_sums_pair<F: Fma>(
     fma: F,
@@ -305,7 +384,7 @@ impl PanelRows {
     /// Unpacks the rows into `panel`, interleaved by row block (`[pair][ROWS]`; zero past
     /// `count` and in each odd part's pad), with their scales and biases. A block's part
     /// whose rows all hold its even number of channels is interleaved by
-    /// [`Fma::interleave_pairs`]; any other part lane by lane.
+    /// [`IntegerVariants::interleave_pairs`]; any other part lane by lane.
     #[inline(always)]
     fn unpack<F: Fma, W: WeightRows>(
         &self,
@@ -995,7 +1074,7 @@ mod tests {
         let c: [f32; 14 * N] = core::array::from_fn(|i| libm::sinf(i as f32 * 2.1));
         let input =
             Input::parts([&a, &b, &c], [a_rows, b_rows, c_rows], N).columns(5, SMALL_SET + 3);
-        let slice = super::super::linear::ColumnSlice {
+        let slice = super::super::operands::ColumnSlice {
             layer: &linear_layer,
             start: a_rows,
             cols: b_rows + c_rows,

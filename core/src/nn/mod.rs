@@ -15,17 +15,19 @@ pub mod fma;
 pub mod integer;
 pub mod linear;
 pub mod norm;
+pub mod operands;
 pub mod residual;
 pub mod sqrt;
 pub mod tap;
 pub mod transpose;
 
 pub use exp::exp;
-pub use linear::{linear, Input, WeightRows, COL_BLOCK, MAX_INPUT, ROW_BLOCK, SMALL_SET};
+pub use linear::{linear, COL_BLOCK, MAX_INPUT, ROW_BLOCK, SMALL_SET};
 pub use norm::{
     instance_norm, instance_norm_rows, l2_normalize_points, leaky_relu, relu, Moments, Normalizer,
     StatSum,
 };
+pub use operands::{Input, WeightRows};
 pub use residual::residual_block;
 pub use sqrt::{sqrt, sqrt_f64};
 pub use tap::{LayerInput, LayerTap};

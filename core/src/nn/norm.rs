@@ -234,6 +234,29 @@ pub struct RowPass<'a, const G: usize> {
     pub means: Option<&'a [f32; G]>,
 }
 
+/// Instance norm's sums with the instructions of a kernel set ([`Fma`]): [`row_sums_x86`]
+/// where the set has AVX2, else [`row_sums`]. Every [`Fma`] has them.
+pub trait NormVariants: Fma {
+    /// [`row_sums`]: instance norm's running sums of `G` rows side by side (AVX2 on x86-64
+    /// for sixteen rows, and for thirty-two with AVX-512's 32 registers, with the default f64
+    /// statistics; the same additions in the same order, so every path gives the same bits).
+    #[inline(always)]
+    fn row_sums<const G: usize>(self, pass: RowPass<'_, G>) -> [StatSum; G] {
+        #[cfg(all(target_arch = "x86_64", not(feature = "f32-statistics")))]
+        {
+            if let Some(avx512) = self.x86_avx512() {
+                return row_sums_x86(avx512, pass);
+            }
+            if let Some(avx2) = self.x86_avx2() {
+                return row_sums_x86(avx2, pass);
+            }
+        }
+        row_sums(pass)
+    }
+}
+
+impl<F: Fma> NormVariants for F {}
+
 /// Each row's [`StatSum`] over its first `n` values in order, for one [`RowPass`].
 #[inline(always)]
 pub fn row_sums<const G: usize>(pass: RowPass<'_, G>) -> [StatSum; G] {

@@ -3,8 +3,9 @@
 //! convolutions, each computed as the reference does, or with `W0` folded into `W1` where
 //! the blob stores it so (see [`crate::weights`]).
 
-use super::linear::{chunk_rows, larger, linear, store, Input};
+use super::linear::{chunk_rows, larger, linear, store};
 use super::norm::{instance_norm_rows, relu};
+use super::operands::Input;
 use super::tap::{LayerInput, LayerTap};
 use crate::weights::ResidualBlockWeights;
 

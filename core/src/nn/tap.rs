@@ -3,7 +3,7 @@
 //! reports its input to a [`LayerTap`] (a `&mut dyn LayerTap`: one indirect call per layer)
 //! just before it reads it; the matcher's [`crate::Observer`] is one, `()` ignores them.
 
-use super::linear::Input;
+use super::operands::Input;
 use crate::limits::MAX_KNN;
 
 /// What one tensor (or EdgeConv pair) reads.

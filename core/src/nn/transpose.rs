@@ -2,6 +2,37 @@
 //! and centre terms (`G` channels a point, the lanes of its vectors) and its per-point
 //! maxima, and the 8 x 8 transpose that the AVX2 instance-norm sums share.
 
+use super::dispatch::Fma;
+
+/// The transposes with the instructions of a kernel set ([`Fma`]): AVX2 8 x 8 transposes
+/// where the set has AVX2, else the portable loops (pure permutations, the same values).
+/// Every [`Fma`] has them.
+pub trait TransposeVariants: Fma {
+    /// [`point_major`]: `G` channel-major rows laid out point by point
+    /// ([`point_major_avx2`] on x86-64).
+    #[inline(always)]
+    fn point_major<const G: usize>(self, rows: &[f32], n: usize, out: &mut [f32]) {
+        #[cfg(target_arch = "x86_64")]
+        if let Some(avx2) = self.x86_avx2() {
+            return point_major_avx2::<G>(avx2, rows, n, out);
+        }
+        point_major::<G>(rows, n, out);
+    }
+
+    /// [`channel_major`]: `n` points of `G` lanes laid out as `G` channel-major rows
+    /// ([`channel_major_avx2`] on x86-64).
+    #[inline(always)]
+    fn channel_major<const G: usize>(self, points: &[f32], n: usize, out: &mut [f32]) {
+        #[cfg(target_arch = "x86_64")]
+        if let Some(avx2) = self.x86_avx2() {
+            return channel_major_avx2::<G>(avx2, points, n, out);
+        }
+        channel_major::<G>(points, n, out);
+    }
+}
+
+impl<F: Fma> TransposeVariants for F {}
+
 /// `out[j * G + c] = rows[c * n + j]` for every point `j < n` and channel `c < G`: `G`
 /// rows of `n` values (`rows` holds at least `G n`) laid out point by point (a pure
 /// permutation).

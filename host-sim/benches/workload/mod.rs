@@ -11,7 +11,7 @@ use gomatch::{Camera, Localization, Localizer, LocalizerConfig, Model, Query, Vi
 use gomatch_sim::eval::{protocol_samples, query_pixels};
 use gomatch_sim::map::build_map;
 use gomatch_sim::protocol::ProtocolParams;
-use gomatch_sim::scene::SceneSource;
+use gomatch_sim::readers::SceneSource;
 use half::f16;
 
 /// Keypoints per query and points per view of the localization workload.

@@ -22,6 +22,7 @@ use gomatch::weights::{
 use safetensors::{Dtype, SafeTensors};
 
 use crate::calibration::{self, FitOptions};
+use crate::float_linear::FloatLinear;
 use crate::quantize::{self, Int8Tensor, Rounding, ScaleSearch};
 
 /// Command-line arguments of `convert`.
@@ -207,34 +208,6 @@ pub fn run(args: &Args) -> Result<()> {
 
 const RAW: &str = "matcher.raw_matcher.";
 const CLS: &str = "matcher.classifier.";
-
-/// A float matrix `rows x cols`, row-major, with an optional bias.
-#[derive(Debug, Clone, PartialEq)]
-pub struct FloatLinear {
-    /// Output channels.
-    pub rows: usize,
-    /// Input channels.
-    pub cols: usize,
-    /// Weights.
-    pub weights: Vec<f32>,
-    /// Bias (empty for none).
-    pub bias: Vec<f32>,
-}
-
-impl FloatLinear {
-    /// A `preconv` folded into its `conv1` ([`fold_residual_blocks`]): 0 x 0, no bias.
-    pub const FOLDED: Self = FloatLinear {
-        rows: 0,
-        cols: 0,
-        weights: Vec::new(),
-        bias: Vec::new(),
-    };
-
-    /// Whether this is [`Self::FOLDED`]: it stores nothing and no layer reads it.
-    pub fn is_folded(&self) -> bool {
-        self.rows == 0 && self.cols == 0 && self.bias.is_empty()
-    }
-}
 
 /// Tensors kept in f32 by default for f16 weights: the encoder input layer and first
 /// residual block. On the reference fixtures they dominate the error of f16 weights (f16

@@ -29,10 +29,8 @@ use gomatch::{Camera, Pose};
 use nalgebra::{Rotation3, Vector3};
 use serde::Deserialize;
 
-use crate::parse::FormatError;
-use crate::scene::{
-    CameraId, Image, ImageId, Keypoint, Point3d, PointId, Scene, SceneSource, TrackElement,
-};
+use crate::readers::parse::{file_name, FormatError};
+use crate::scene::{CameraId, Image, ImageId, Keypoint, Point3d, PointId, Scene, TrackElement};
 
 /// One reconstruction of `reconstruction.json` (fields this reader uses).
 #[derive(Debug, Deserialize)]
@@ -91,12 +89,20 @@ pub fn model_files(path: &Path) -> (PathBuf, PathBuf) {
     (reconstruction, folder.join("tracks.csv"))
 }
 
+/// The name of the scene of an OpenSfM dataset folder (or its `reconstruction.json`):
+/// `opensfm/<dataset folder>`.
+pub fn scene_name(path: &Path) -> String {
+    let (reconstruction, _) = model_files(path);
+    let folder = reconstruction.parent().and_then(file_name);
+    format!("opensfm/{}", folder.unwrap_or_default())
+}
+
 /// Reads the largest reconstruction of an OpenSfM dataset folder (or `reconstruction.json`).
 pub fn read_opensfm(path: &Path) -> anyhow::Result<Scene> {
     let (reconstruction, tracks) = model_files(path);
     let read =
         |p: &Path| std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()));
-    let name = SceneSource::OpenSfm(path.to_path_buf()).name();
+    let name = scene_name(path);
     parse_opensfm(&read(&reconstruction)?, &read(&tracks)?, name)
         .with_context(|| format!("parsing {}", reconstruction.display()))
 }

@@ -20,9 +20,10 @@ use nalgebra::Vector3;
 use serde::Serialize;
 
 use crate::host::ScenesArgs;
+use crate::protocol::synthetic::{collection_scene, synthetic_layout, synthetic_scene, Layout};
 use crate::protocol::{quantiles, scene_samples, ProtocolParams, QuerySample};
-use crate::scene::{median, Image, Scene, SceneSource};
-use crate::synthetic::{collection_scene, synthetic_layout, synthetic_scene, Layout};
+use crate::readers::SceneSource;
+use crate::scene::{median, Image, Scene};
 
 /// The validation scenes of `shared/data/README.md`: listed per scene, never pooled into
 /// the training column the simulator is tuned on.

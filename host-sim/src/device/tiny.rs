@@ -4,10 +4,11 @@
 
 use gomatch::weights::{tensor_spec, ModelConfig, Precision};
 use gomatch::Camera;
-use gomatch_tools::convert::{write_blob, FloatLinear, Options};
+use gomatch_blobs::convert::{write_blob, Options};
+use gomatch_blobs::float_linear::FloatLinear;
 
-use crate::colmap::{parse_cameras_txt, parse_images_txt, parse_points_txt};
 use crate::map::build_map;
+use crate::readers::colmap::{parse_cameras_txt, parse_images_txt, parse_points_txt};
 use crate::scene::Scene;
 
 /// Image ids of the two views.
@@ -90,7 +91,7 @@ pub fn tiny_scene_txt(points: usize) -> [String; 3] {
 }
 
 /// The scene of [`tiny_scene_txt`] as OpenSfM files: `reconstruction.json` and
-/// `tracks.csv` (`crate::opensfm`; shots `view10.jpg`, `view20.jpg`, one track per point,
+/// `tracks.csv` (`crate::readers::opensfm`; shots `view10.jpg`, `view20.jpg`, one track per point,
 /// feature id = point id).
 pub fn tiny_scene_opensfm(points: usize) -> [String; 2] {
     let size = CENTRE[0].max(CENTRE[1]) * 2.0;
@@ -165,7 +166,7 @@ pub fn tiny_query(x: f64, count: usize) -> Vec<[f32; 2]> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::opensfm::parse_opensfm;
+    use crate::readers::opensfm::parse_opensfm;
 
     /// The OpenSfM files hold the COLMAP text's scene: the same points, poses and pixels
     /// (image ids are the shots' positions there).

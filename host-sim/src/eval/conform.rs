@@ -16,7 +16,7 @@ use anyhow::{bail, ensure, Context, Result};
 use gomatch::nn::LayerTap;
 use gomatch::sinkhorn::{PlanScalar, Transport};
 use gomatch::{Matcher, Model, Observer, Precision, Stage};
-use gomatch_tools::convert::PrecisionArg;
+use gomatch_blobs::convert::PrecisionArg;
 use half::f16;
 use serde::Serialize;
 
@@ -130,7 +130,7 @@ pub fn conform(
     };
     let checkpoint =
         std::fs::read(&weights).with_context(|| format!("reading {}", weights.display()))?;
-    let (blob, _) = gomatch_tools::convert::convert(&checkpoint, precision)?;
+    let (blob, _) = gomatch_blobs::convert::convert(&checkpoint, precision)?;
     conform_blob(fixture, &blob, plan)
 }
 

@@ -13,9 +13,10 @@ use safetensors::tensor::TensorView;
 use safetensors::Dtype;
 
 use crate::host::ScenesArgs;
+use crate::protocol::synthetic::{collection_scene, synthetic_scene};
 use crate::protocol::{scene_samples, ProtocolParams, QuerySample};
-use crate::scene::{Scene, SceneSource};
-use crate::synthetic::{collection_scene, synthetic_scene};
+use crate::readers::SceneSource;
+use crate::scene::Scene;
 
 /// Value of the `format` metadata entry.
 pub const FORMAT: &str = "gomatch-dataset";

@@ -10,10 +10,8 @@ use gomatch::camera::{CameraModel, MAX_PARAMS};
 use gomatch::{Camera, Pose};
 use nalgebra::Vector3;
 
-use crate::parse::{field, token, ByteReader, FormatError};
-use crate::scene::{
-    CameraId, Image, ImageId, Keypoint, Point3d, PointId, Scene, SceneSource, TrackElement,
-};
+use crate::readers::parse::{field, file_name, token, ByteReader, FormatError};
+use crate::scene::{CameraId, Image, ImageId, Keypoint, Point3d, PointId, Scene, TrackElement};
 
 /// COLMAP's marker of an untriangulated keypoint in binary files (`-1` as `u64`).
 const INVALID_POINT_ID: u64 = u64::MAX;
@@ -64,7 +62,7 @@ pub fn find_model_dir(dir: &Path) -> anyhow::Result<PathBuf> {
         bail!(
             "{} is a file ({}), not a COLMAP model folder (cameras, images, points3D .bin or .txt)",
             dir.display(),
-            gomatch_tools::files::FileKind::of(&head).describe()
+            gomatch_blobs::files::FileKind::of(&head).describe()
         );
     }
     if holds_model(dir) {
@@ -98,9 +96,21 @@ pub fn find_model_dir(dir: &Path) -> anyhow::Result<PathBuf> {
     }
 }
 
+/// The name of the scene of a COLMAP model folder: `colmap/<folder>`, the scene folder for the
+/// `<scene>/sparse/<n>` layout.
+pub fn scene_name(dir: &Path) -> String {
+    let is_generic = |c: &str| c == "sparse" || c.chars().all(|ch| ch.is_ascii_digit());
+    let stem = dir
+        .ancestors()
+        .filter_map(file_name)
+        .find(|c| !is_generic(c))
+        .unwrap_or_default();
+    format!("colmap/{stem}")
+}
+
 /// Reads a COLMAP sparse model folder ([`find_model_dir`]: or the one model below it).
 /// Uses the `.bin` files when `cameras.bin` exists, the `.txt` files otherwise. The scene
-/// is named after the folder (see [`SceneSource::name`]) and is not yet validated.
+/// is named after the folder ([`scene_name`]) and is not yet validated.
 pub fn read_model(dir: &Path) -> anyhow::Result<Scene> {
     let dir = &find_model_dir(dir)?;
     let binary = dir.join("cameras.bin").exists();
@@ -113,7 +123,7 @@ pub fn read_model(dir: &Path) -> anyhow::Result<Scene> {
     let context = |stem: &str| format!("parsing {}/{stem}", dir.display());
     let scene = if binary {
         Scene {
-            name: SceneSource::Colmap(dir.to_path_buf()).name(),
+            name: scene_name(dir),
             cameras: parse_cameras_bin(&cameras).with_context(|| context("cameras.bin"))?,
             images: parse_images_bin(&images).with_context(|| context("images.bin"))?,
             points: parse_points_bin(&points).with_context(|| context("points3D.bin"))?,
@@ -123,7 +133,7 @@ pub fn read_model(dir: &Path) -> anyhow::Result<Scene> {
             String::from_utf8(bytes.to_vec()).with_context(|| context(stem))
         };
         Scene {
-            name: SceneSource::Colmap(dir.to_path_buf()).name(),
+            name: scene_name(dir),
             cameras: parse_cameras_txt(&text(&cameras, "cameras.txt")?)
                 .with_context(|| context("cameras.txt"))?,
             images: parse_images_txt(&text(&images, "images.txt")?)

@@ -21,10 +21,10 @@ use gomatch::{Localizer, LocalizerConfig, Map, Model, Pose, Query, ViewSelection
 use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64Mcg;
 
-use crate::device::{HostLink, LinkStats, Received, RequestError, RetryPolicy, Transport};
-use crate::tiny::{
+use crate::device::tiny::{
     tiny_camera, tiny_map_blob, tiny_model_blob, tiny_query, TINY_POINTS, TINY_VIEWS,
 };
+use crate::device::{HostLink, LinkStats, Received, RequestError, RetryPolicy, Transport};
 
 /// Keypoint capacity of the soak's device.
 pub const SOAK_CAPACITY: usize = 64;

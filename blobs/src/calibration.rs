@@ -26,7 +26,7 @@ use rand_distr::StandardNormal;
 use rand_pcg::Pcg64Mcg;
 use std::sync::Mutex;
 
-use crate::convert::FloatLinear;
+use crate::float_linear::FloatLinear;
 use crate::quantize::{self, Int8Tensor, ScaleSearch};
 
 /// One query-view pair of bearing sets.

@@ -19,9 +19,9 @@ use gomatch::Map;
 
 use crate::eval::{protocol_samples, query_pixels};
 use crate::map::build_map;
+use crate::protocol::synthetic::synthetic_scene;
 use crate::protocol::{ProtocolParams, QuerySample};
 use crate::scene::Scene;
-use crate::synthetic::synthetic_scene;
 
 /// Keypoint capacity of the firmware image (`firmware/src/main.rs`).
 pub const FIRMWARE_CAPACITY: usize = 256;

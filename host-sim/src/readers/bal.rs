@@ -20,8 +20,8 @@ use gomatch::camera::CameraModel;
 use gomatch::{Camera, Pose};
 use nalgebra::{Matrix3, Rotation3, Vector3};
 
-use crate::parse::{FormatError, Tokens};
-use crate::scene::{Image, ImageId, Keypoint, Point3d, Scene, SceneSource, TrackElement};
+use crate::readers::parse::{FormatError, Tokens};
+use crate::scene::{Image, ImageId, Keypoint, Point3d, Scene, TrackElement};
 
 /// One camera of a BAL/Bundler file in its own convention.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -186,8 +186,14 @@ const OBSERVATION_TOKENS: usize = 4;
 pub fn read_bal(path: &Path) -> anyhow::Result<Scene> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let name = SceneSource::Bal(path.to_path_buf()).name();
+    let name = scene_name(path);
     parse_bal(&text, name).with_context(|| format!("parsing {}", path.display()))
+}
+
+/// The name of the scene of a BAL problem file: `bal/<file stem>`.
+pub fn scene_name(path: &Path) -> String {
+    let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned());
+    format!("bal/{}", stem.unwrap_or_default())
 }
 
 /// Parses the text of a BAL problem: `num_cameras num_points num_observations`, the

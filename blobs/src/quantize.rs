@@ -10,7 +10,7 @@
 
 use anyhow::{ensure, Result};
 
-use crate::convert::FloatLinear;
+use crate::float_linear::FloatLinear;
 
 /// How rows are rounded.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]

@@ -5,6 +5,15 @@
 //! for the device info, optionally sends noise (to show the receiver resynchronising),
 //! sends the queries of a synthetic scene and checks every reply against a direct
 //! [`Localizer::localize`] call on the same input.
+//!
+//! Beside it: [`faulty_link`] runs the link over a lossy line, [`tiny`] builds the tiny
+//! scene, map and model its soak and the fuzz targets use, and [`firmware_data`] and
+//! [`firmware_reply`] write the firmware image's embedded data and the host's reply to it.
+
+pub mod faulty_link;
+pub mod firmware_data;
+pub mod firmware_reply;
+pub mod tiny;
 
 use std::collections::VecDeque;
 use std::convert::Infallible;
@@ -29,8 +38,8 @@ use rand_pcg::Pcg64Mcg;
 use crate::eval::{protocol_samples, query_pixels};
 use crate::host::{default_model_path, HostClock, CAPACITY};
 use crate::map::build_map;
+use crate::protocol::synthetic::SyntheticQueries;
 use crate::protocol::QuerySample;
-use crate::synthetic::SyntheticQueries;
 
 /// Receive buffer of the simulated device.
 const RX: usize = link::rx_frame_len(CAPACITY);
@@ -541,7 +550,7 @@ pub fn load_model(path: Option<&Path>) -> anyhow::Result<(Vec<u8>, String)> {
         .map(Path::to_path_buf)
         .or_else(|| shipped.is_file().then_some(shipped));
     if let Some(path) = path {
-        let blob = gomatch_tools::files::read_model_blob(&path)?;
+        let blob = gomatch_blobs::files::read_model_blob(&path)?;
         return Ok((blob, path.display().to_string()));
     }
     let fixture = fixture_weights_path();
@@ -551,7 +560,7 @@ pub fn load_model(path: Option<&Path>) -> anyhow::Result<(Vec<u8>, String)> {
             fixture.display()
         )
     })?;
-    let (blob, _) = gomatch_tools::convert::convert(&checkpoint, Precision::Int8)?;
+    let (blob, _) = gomatch_blobs::convert::convert(&checkpoint, Precision::Int8)?;
     let what = format!(
         "{} converted to int8 (random reference fixture weights: poses will be wrong)",
         fixture.display()
@@ -561,10 +570,10 @@ pub fn load_model(path: Option<&Path>) -> anyhow::Result<(Vec<u8>, String)> {
 
 /// The reference fixture weights, `shared/reference/fixtures/weights.safetensors` beside the
 /// repository, found from the current folder or the executable's
-/// ([`gomatch_tools::files::find_default`]).
+/// ([`gomatch_blobs::files::find_default`]).
 pub fn fixture_weights_path() -> PathBuf {
     const FIXTURE: &str = "shared/reference/fixtures/weights.safetensors";
-    gomatch_tools::files::find_default(FIXTURE).unwrap_or_else(|| PathBuf::from("..").join(FIXTURE))
+    gomatch_blobs::files::find_default(FIXTURE).unwrap_or_else(|| PathBuf::from("..").join(FIXTURE))
 }
 
 /// Runs `gomatch-sim device`.

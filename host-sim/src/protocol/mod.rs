@@ -22,6 +22,13 @@
 //! Every projection (a view's bearings, the ground truth, the reprojection metric) goes
 //! through the core's [`ProjectionRule`] of the camera it projects into ([`camera_rule`]):
 //! a point at a camera's centre or far off its axis is skipped, never projected.
+//!
+//! Beside it: [`synthetic`] builds the seeded synthetic scenes, [`dataset`] writes the
+//! training samples and [`scenes_stats`] compares real scenes with synthetic ones.
+
+pub mod dataset;
+pub mod scenes_stats;
+pub mod synthetic;
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 

@@ -10,6 +10,15 @@
 //! match counts per stage, how many merged matches and inliers are ground-truth pairs
 //! ([`Correct`]), stage timings, and how well the acceptance rule separates right poses
 //! from wrong ones ([`AcceptanceSummary`], with each query's [`Evidence`] and features).
+//!
+//! Beside it: [`fit`] fits the acceptance rule on its reports, [`demo`] localizes a
+//! built-in synthetic scene, [`pnp`] compares RANSAC-PnP with PoseLib and OpenCV, and
+//! [`conform`] compares the matcher's stages with the reference's.
+
+pub mod conform;
+pub mod demo;
+pub mod fit;
+pub mod pnp;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -37,7 +46,7 @@ use crate::protocol::{
     QuerySample,
 };
 use crate::scene::{ImageId, PointId, Scene};
-use gomatch_tools::view_features::{attach, build_view_features};
+use gomatch_blobs::view_features::{attach, build_view_features};
 
 /// Thread stack for the localizer workers: the workspace lives on it (about 7.7 MiB with
 /// an f32 cost, twice that in unoptimised builds).
@@ -1085,7 +1094,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let (matching, matcher) = if args.oracle {
         (Matching::Oracle, "oracle".to_string())
     } else {
-        blob = gomatch_tools::files::read_model_blob(&model_path)
+        blob = gomatch_blobs::files::read_model_blob(&model_path)
             .context("pass --model PATH, or use --oracle")?;
         model = Model::from_bytes(&blob)
             .with_context(|| format!("decoding the model {}", model_path.display()))?;

@@ -1,4 +1,4 @@
-//! Bundler v0.3 `bundle.out` reader. Same camera model as BAL (see [`crate::bal`] for the
+//! Bundler v0.3 `bundle.out` reader. Same camera model as BAL (see [`crate::readers::bal`] for the
 //! exact conversion), with the rotation stored as a 3x3 matrix; cameras with `f = 0` were
 //! not placed by Bundler and are skipped together with their observations. Image names
 //! come from the name list beside the file (`list.txt` or `name_list.txt`, one image per
@@ -9,9 +9,9 @@ use std::path::Path;
 use anyhow::Context;
 use nalgebra::{Matrix3, Vector3};
 
-use crate::bal::{assemble_scene, BundlerCamera, Observation};
-use crate::parse::{FormatError, Tokens};
-use crate::scene::{Scene, SceneSource};
+use crate::readers::bal::{assemble_scene, BundlerCamera, Observation};
+use crate::readers::parse::{file_name, FormatError, Tokens};
+use crate::scene::Scene;
 
 /// First line of every Bundler v0.3 file.
 const HEADER: &str = "# Bundle file v0.3";
@@ -25,7 +25,7 @@ const POINT_MIN_TOKENS: usize = 7;
 pub fn read_bundler(path: &Path) -> anyhow::Result<Scene> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let name = SceneSource::Bundler(path.to_path_buf()).name();
+    let name = scene_name(path);
     let mut scene =
         parse_bundler(&text, name).with_context(|| format!("parsing {}", path.display()))?;
     let folder = path.parent().unwrap_or(Path::new("."));
@@ -40,6 +40,16 @@ pub fn read_bundler(path: &Path) -> anyhow::Result<Scene> {
             .with_context(|| format!("parsing {}", list.display()))?;
     }
     Ok(scene)
+}
+
+/// The name of the scene of a Bundler file: `bundler/<the folder holding bundle.out>` (the
+/// file stem for another file name).
+pub fn scene_name(path: &Path) -> String {
+    let stem = match file_name(path).as_deref() {
+        Some("bundle.out") => path.parent().and_then(file_name),
+        _ => path.file_stem().map(|s| s.to_string_lossy().into_owned()),
+    };
+    format!("bundler/{}", stem.unwrap_or_default())
 }
 
 /// Name lists Bundler's tools write beside `bundle.out`, in the order they are looked for.

@@ -14,7 +14,7 @@ use gomatch::link::{self, Device, NoPin, Response, ResponseBody, Served, Service
 use gomatch::{merge, Localizer};
 use half::f16;
 
-use crate::firmware_data::FIRMWARE_CAPACITY;
+use crate::device::firmware_data::FIRMWARE_CAPACITY;
 
 /// Keypoint capacity of the AArch64 image (`firmware/src/main.rs`).
 pub const AARCH64_CAPACITY: usize = 1024;

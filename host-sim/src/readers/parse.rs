@@ -2,6 +2,7 @@
 //! binary files and a whitespace token stream for text files. Every malformed input is a
 //! [`FormatError`] naming where it failed; nothing panics on file contents.
 
+use std::path::Path;
 use std::str::FromStr;
 
 /// A malformed model file.
@@ -329,6 +330,11 @@ pub fn field<T: FromStr>(
         message: format!("line ends where {what} was expected"),
     })?;
     token(text, line, what)
+}
+
+/// The last component of `path` (lossy UTF-8), if it has one: a piece of a scene's name.
+pub fn file_name(path: &Path) -> Option<String> {
+    path.file_name().map(|n| n.to_string_lossy().into_owned())
 }
 
 #[cfg(test)]

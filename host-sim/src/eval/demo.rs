@@ -1,5 +1,5 @@
 //! `gomatch-sim demo`: the whole localizer on a built-in synthetic scene, no files
-//! needed. Builds the scene ([`crate::synthetic`]) and its map blob, localizes a few
+//! needed. Builds the scene ([`crate::protocol::synthetic`]) and its map blob, localizes a few
 //! protocol queries with the shipped model (or, without one, with ground-truth matches)
 //! and prints per query the pose and reprojection errors, match counts and stage
 //! timings, then the memory the device would need.
@@ -14,7 +14,7 @@ use half::f16;
 use crate::eval::{evaluate, EvalOptions, Matching, QueryResult, Report, SinkhornPrecision};
 use crate::host::{default_model_path, CAPACITY};
 
-use crate::synthetic::SyntheticQueries;
+use crate::protocol::synthetic::SyntheticQueries;
 
 /// Localize a few queries of a built-in synthetic scene and print what happened.
 #[derive(Debug, Clone, Parser)]
@@ -137,7 +137,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let blob = if args.oracle {
         None
     } else if model_path.is_file() {
-        Some(gomatch_tools::files::read_model_blob(&model_path)?)
+        Some(gomatch_blobs::files::read_model_blob(&model_path)?)
     } else {
         println!(
             "NOTE: no trained model at {}; falling back to ground-truth matches (oracle) to show the pose solver. Pass --model PATH to use another blob.",
