@@ -3,6 +3,9 @@
 
 use std::fmt::Write as _;
 use std::path::Path;
+use std::string::String;
+use std::vec::Vec;
+use std::{format, vec};
 
 use gomatch::link::{decode_frame, decode_keypoints, Request, RequestBody, Views};
 

@@ -1,6 +1,7 @@
 //! The committed C header is what cbindgen generates from this crate.
 
 use std::path::Path;
+use std::vec::Vec;
 
 /// Fails when `include/gomatch.h` differs from cbindgen's output for the current sources;
 /// `GOMATCH_WRITE_HEADER=1 cargo test -p gomatch-capi header` rewrites it.

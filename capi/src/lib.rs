@@ -15,13 +15,20 @@
 //! Every function checks its arguments before calling into the core (null and misaligned
 //! pointers, handles never opened, enumeration values, counts and sizes) and returns a
 //! `gomatch_error`; the core reports every bad input as a typed error. No panic is
-//! expected: should one happen (a bug), the image built with `panic = "abort"` executes an
-//! undefined instruction (a HardFault on a Cortex-M, `SIGILL` on a host) instead of
-//! unwinding into C.
-#![cfg_attr(not(test), no_std)]
+//! expected: should one happen (a bug), the library built with `panic = "abort"` stops
+//! instead of unwinding into C: on a bare-metal target (`target_os = "none"`) with an
+//! undefined instruction (a HardFault on a Cortex-M), on a hosted one through std's panic
+//! runtime (the message, then `abort`).
+#![no_std]
 // The items keep the C names of the header.
 #![allow(non_camel_case_types)]
 #![warn(missing_docs)]
+
+// A hosted target links std, for its panic runtime only: a workspace build also enables std
+// in the core's dependencies (the host tools' features), where a handler of this crate would
+// be a second one. The code uses `core` alone on every target.
+#[cfg(not(target_os = "none"))]
+extern crate std;
 
 mod blobs;
 mod error;
@@ -62,9 +69,9 @@ pub(crate) fn checked<T>(pointer: *const T) -> Result<core::ptr::NonNull<T>, gom
     Ok(pointer)
 }
 
-/// A panic is a bug of this library (every input is checked first): stop at once with an
-/// undefined instruction rather than unwind into C.
-#[cfg(not(test))]
+/// A panic is a bug of this library (every input is checked first): on a bare-metal
+/// target, stop at once with an undefined instruction rather than unwind into C.
+#[cfg(target_os = "none")]
 #[panic_handler]
 fn panic(_: &core::panic::PanicInfo) -> ! {
     #[cfg(any(target_arch = "arm", target_arch = "aarch64"))]
@@ -72,17 +79,7 @@ fn panic(_: &core::panic::PanicInfo) -> ! {
     unsafe {
         core::arch::asm!("udf #0", options(noreturn, nomem, nostack))
     }
-    #[cfg(any(target_arch = "x86", target_arch = "x86_64"))]
-    // SAFETY: `ud2` raises an invalid-opcode exception and touches no memory.
-    unsafe {
-        core::arch::asm!("ud2", options(noreturn, nomem, nostack))
-    }
-    #[cfg(not(any(
-        target_arch = "arm",
-        target_arch = "aarch64",
-        target_arch = "x86",
-        target_arch = "x86_64"
-    )))]
+    #[cfg(not(any(target_arch = "arm", target_arch = "aarch64")))]
     loop {
         core::hint::spin_loop();
     }

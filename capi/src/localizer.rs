@@ -60,6 +60,8 @@ struct Header {
 const MAGIC: u32 = 0x474d_4c5a; // "GMLZ"
 
 /// The outcome of the last `gomatch_localize` call that read its query.
+// One per workspace, beside a localizer of a megabyte: no heap to box the large variant into.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone)]
 pub(crate) enum Last {
     /// None since the workspace was initialised, or the call was refused before.
@@ -74,16 +76,19 @@ pub(crate) enum Last {
 /// capacities it initialises only.
 struct Ops {
     /// `Localizer::localize` with the Sinkhorn cost in f16 and no clock.
-    localize: unsafe fn(
-        NonNull<Header>,
-        &Model<'_>,
-        &Map<'_>,
-        &Query<'_>,
-        ViewSelection<'_>,
-    ) -> Result<Localization, Error>,
+    localize: LocalizeFn,
     /// `Localizer::correspondences`.
     correspondences: unsafe fn(NonNull<Header>) -> *const [Correspondence],
 }
+
+/// The signature of [`Ops::localize`].
+type LocalizeFn = unsafe fn(
+    NonNull<Header>,
+    &Model<'_>,
+    &Map<'_>,
+    &Query<'_>,
+    ViewSelection<'_>,
+) -> Result<Localization, Error>;
 
 /// Settings of every localization: the core's defaults.
 static CONFIG: LocalizerConfig = LocalizerConfig::new();
@@ -194,7 +199,7 @@ unsafe fn init_workspace<const N: usize>(
     let Some(memory) = NonNull::new(memory.cast::<u8>()) else {
         return GOMATCH_ERROR_NULL_POINTER;
     };
-    if memory.as_ptr() as usize % GOMATCH_LOCALIZER_ALIGN != 0 {
+    if !(memory.as_ptr() as usize).is_multiple_of(GOMATCH_LOCALIZER_ALIGN) {
         return GOMATCH_ERROR_MISALIGNED;
     }
     // SAFETY: `memory` is non-null, aligned and, as the caller promises, valid for `bytes`

@@ -170,7 +170,7 @@ impl gomatch_pose {
 
     /// The core `Pose` of a prior: finite values and a non-zero quaternion, else
     /// `GOMATCH_ERROR_INVALID_PRIOR`.
-    pub(crate) fn to_prior(&self) -> Result<Pose, gomatch_error> {
+    pub(crate) fn to_prior(self) -> Result<Pose, gomatch_error> {
         let [w, x, y, z] = self.rotation;
         let norm2 = w * w + x * x + y * y + z * z;
         let finite = self
@@ -178,7 +178,7 @@ impl gomatch_pose {
             .iter()
             .chain(&self.translation)
             .all(|v| v.is_finite());
-        if !finite || !(norm2 > 1e-24) || !norm2.is_finite() {
+        if !finite || norm2 <= 1e-24 || !norm2.is_finite() {
             return Err(gomatch_error::GOMATCH_ERROR_INVALID_PRIOR);
         }
         let rotation = UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z));
@@ -192,7 +192,7 @@ impl gomatch_pose {
 
 impl gomatch_camera {
     /// The core camera, or `GOMATCH_ERROR_INVALID_CAMERA`.
-    pub(crate) fn to_camera(&self) -> Result<Camera, gomatch_error> {
+    pub(crate) fn to_camera(self) -> Result<Camera, gomatch_error> {
         let invalid = gomatch_error::GOMATCH_ERROR_INVALID_CAMERA;
         let id = i32::try_from(self.model).map_err(|_| invalid)?;
         let model = CameraModel::from_colmap_id(id).map_err(|_| invalid)?;
