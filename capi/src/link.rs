@@ -62,9 +62,11 @@ pub unsafe extern "C" fn gomatch_link_reply(
         body,
     };
     let mut buffer = [0u8; TX_FRAME_LEN];
+    const FRAME: u32 = gomatch_reply_form::GOMATCH_REPLY_FRAME as u32;
+    const MESSAGE: u32 = gomatch_reply_form::GOMATCH_REPLY_MESSAGE as u32;
     let encoded = match form {
-        0 => encode_frame(&response, &mut buffer).map(|b| b.len()),
-        1 => postcard::to_slice(&response, &mut buffer)
+        FRAME => encode_frame(&response, &mut buffer).map(|b| b.len()),
+        MESSAGE => postcard::to_slice(&response, &mut buffer)
             .ok()
             .map(|b| b.len()),
         _ => return GOMATCH_ERROR_INVALID_ARGUMENT,

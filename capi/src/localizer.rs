@@ -23,11 +23,11 @@ use gomatch_error::*;
 /// Alignment of a workspace's memory, in bytes.
 pub const GOMATCH_LOCALIZER_ALIGN: usize = 8;
 /// Bytes of a workspace of capacity 128 (`gomatch_localizer_bytes(128)`).
-pub const GOMATCH_LOCALIZER_BYTES_128: usize = 523_344;
+pub const GOMATCH_LOCALIZER_BYTES_128: usize = 523_352;
 /// Bytes of a workspace of capacity 256 (`gomatch_localizer_bytes(256)`).
-pub const GOMATCH_LOCALIZER_BYTES_256: usize = 1_046_224;
+pub const GOMATCH_LOCALIZER_BYTES_256: usize = 1_046_232;
 /// Bytes of a workspace of capacity 1024 (`gomatch_localizer_bytes(1024)`).
-pub const GOMATCH_LOCALIZER_BYTES_1024: usize = 5_559_760;
+pub const GOMATCH_LOCALIZER_BYTES_1024: usize = 5_559_768;
 
 /// A workspace: memory placed by the caller and set up by `gomatch_localizer_init`. It
 /// serves one call at a time: one workspace per concurrent caller.
@@ -54,6 +54,9 @@ struct Header {
     ops: &'static Ops,
     /// The outcome of the last `gomatch_localize` call.
     last: Last,
+    /// Whether the last call reached the core's localizer, whose correspondences are then
+    /// that call's (else there are none).
+    matched: bool,
 }
 
 /// `Header::magic` of an initialised workspace.
@@ -145,6 +148,7 @@ impl<const N: usize> Workspace<N> {
                 capacity: N as u32,
                 ops: &Self::OPS,
                 last: Last::Nothing,
+                matched: false,
             });
         }
         Ok(memory.cast())
@@ -302,6 +306,7 @@ pub unsafe extern "C" fn gomatch_localize(
     // SAFETY: an initialised workspace, used by this call only (the caller's promise).
     let head = unsafe { header.as_mut() };
     head.last = Last::Nothing;
+    head.matched = false;
     // SAFETY: the caller's promise on the handles and the query.
     let checked_inputs = unsafe {
         (
@@ -320,6 +325,8 @@ pub unsafe extern "C" fn gomatch_localize(
     let outcome = match unsafe { read_query(&query, capacity) } {
         Ok((keypoints, camera, views)) => {
             let query = Query { keypoints, camera };
+            // SAFETY: as above (the call below takes the workspace next).
+            unsafe { header.as_mut().matched = true };
             // SAFETY: `ops` belongs to the workspace's capacity; no reference into the
             // workspace is alive across the call.
             match unsafe { (ops.localize)(header, model, map, &query, views) } {
@@ -522,8 +529,11 @@ unsafe fn last_correspondences<'w>(
     let header = workspace(localizer)?;
     // SAFETY: an initialised workspace (its mark is set), not written meanwhile.
     unsafe {
-        let ops = header.as_ref().ops;
-        Ok(&*(ops.correspondences)(header))
+        let head = header.as_ref();
+        if !head.matched {
+            return Ok(&[]);
+        }
+        Ok(&*(head.ops.correspondences)(header))
     }
 }
 

@@ -375,6 +375,16 @@ static void test_firmware_query(uint32_t capacity) {
   reply_hex(localizer, got);
   CHECK(strcmp(got, expected_reply) == 0);
 
+  /* A query refused before the localizer runs leaves no correspondences of earlier calls. */
+  gomatch_query refused = query;
+  refused.views.image_id_count = GOMATCH_MAX_VIEWS + 1;
+  EXPECT(gomatch_localize(localizer, &model, &map, &refused, &result), GOMATCH_ERROR_TOO_MANY_VIEWS);
+  EXPECT(gomatch_inliers(localizer, NULL, 0, &count), GOMATCH_OK);
+  CHECK(count == 0);
+  EXPECT(gomatch_correspondences_digest(localizer, &digest), GOMATCH_OK);
+  CHECK(digest == 0x811c9dc5u);
+  EXPECT(gomatch_localize(localizer, &model, &map, &query, &result), GOMATCH_OK);
+
   /* Views near a prior: the pose found, its 3 nearest views. */
   gomatch_query near = query;
   near.views.selection = GOMATCH_VIEWS_NEAR_PRIOR;

@@ -13,6 +13,13 @@ if [ ! -f "$model" ]; then
   exit 0
 fi
 
+# The README's C example compiles against the header.
+snippet=$(awk '/^## Using the localizer from C/ {on = 1} on && /^```c$/ {code = 1; next}
+  code && /^```$/ {exit} code {print}' README.md)
+[ -n "$snippet" ] || { echo "README.md: no C example under 'Using the localizer from C'" >&2; exit 1; }
+cc -std=c11 -Wall -Wextra -Werror -Icapi/include -fsyntax-only -x c - <<<"$snippet"
+echo "README's C example: compiles"
+
 cargo build -q -p gomatch-capi --profile capi
 out=target/capi/host_test
 cc -std=c11 -O2 -g -Wall -Wextra -Werror -Icapi/include capi/test/host_test.c \
