@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The project's test command: every Rust test of the workspace (release build), the core's unit
-# tests without its `link` feature, then the trainer's PyTorch tests (reference-fixture
+# tests without its `link` feature, the C API's host test in C (capi/test/run.sh: under valgrind
+# when it is installed), then the trainer's PyTorch tests (reference-fixture
 # conformance, agreement with the Rust core through the release gomatch-sim binary, losses, a
 # short training smoke run).
 # Tests that need ../shared skip with a message when it is absent.
@@ -11,4 +12,5 @@ cargo test --workspace --release
 cargo test -p gomatch --release --no-default-features --lib
 cargo test -p gomatch --release --lib --features f32-statistics  # single-precision FPUs
 cargo build --release -p gomatch-sim -p gomatch-tools
+bash capi/test/run.sh  # the C API from C, against the x86-64 static library
 tools/train/run_tests.sh

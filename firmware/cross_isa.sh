@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # Bit-identical across machines: compares the reply bytes (stage timings cleared) and the digest of
 # the merged correspondences (every classifier probability, bit for bit) that the firmware images
-# printed on x86_64 (build.sh), Cortex-M7 and AArch64 (qemu.sh), kept in
+# printed on x86_64 (build.sh), Cortex-M7 and AArch64 (qemu.sh), and by the C example on the
+# Cortex-M7 (board c-cortex-m7: capi/example/qemu.sh, through the C API), kept in
 # firmware/target/<board>.log, with the host's, firmware/data/reply.hex (written by
 # `cargo run --release -p gomatch-sim -- firmware-reply --out firmware/data/reply.hex`).
 #
-#   bash firmware/cross_isa.sh                # after build.sh and both qemu.sh runs
+#   bash firmware/cross_isa.sh                # after build.sh, both qemu.sh runs and capi/example/qemu.sh
 #   bash firmware/cross_isa.sh x86_64         # only the boards named
 #
 # Fails with a diff when a board's bytes differ from the host's or its log is absent.
@@ -13,7 +14,7 @@ set -euo pipefail
 cd "$(dirname "$0")"
 
 boards=("$@")
-[ ${#boards[@]} -gt 0 ] || boards=(x86_64 cortex-m7 aarch64)
+[ ${#boards[@]} -gt 0 ] || boards=(x86_64 cortex-m7 aarch64 c-cortex-m7)
 
 if [ ! -f ../models/gomatch-int8.bin ]; then
   echo "SKIPPED: no shipped model ../models/gomatch-int8.bin (the images were not run)"
@@ -25,7 +26,7 @@ failed=0
 for board in "${boards[@]}"; do
   log="target/$board.log"
   if [ ! -f "$log" ]; then
-    echo "$board: no log $log (run build.sh for x86_64, qemu.sh $board for an ARM board)" >&2
+    echo "$board: no log $log (run build.sh for x86_64, qemu.sh $board for an ARM board, capi/example/qemu.sh for c-cortex-m7)" >&2
     failed=1
     continue
   fi

@@ -60,6 +60,8 @@ fn args(capacity: &[usize], views: &[usize], sinkhorn: &[Sinkhorn], model: PathB
         map: None,
         json: None,
         images: PathBuf::from("firmware/target"),
+        c_image: PathBuf::from("capi/example/build/gomatch-c-example.elf"),
+        budget_capi_flash: None,
         images_only: false,
     }
 }

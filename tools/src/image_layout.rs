@@ -14,6 +14,9 @@ pub const TARGETS: [&str; 3] = [
     "thumbv7em-none-eabihf",
     "aarch64-unknown-none",
 ];
+/// The target column of the C example's image (`capi/example`, `bash capi/example/qemu.sh`):
+/// the Cortex-M7 firmware in C, linked against the C API's static library.
+pub const C_EXAMPLE_TARGET: &str = "thumbv7em-none-eabihf (C example)";
 /// The sections reported: the Cortex-M vector table, code, read-only data (the model and
 /// map blobs), initialised and zeroed data, the Cortex-M7 workspace in PSRAM and the
 /// AArch64 image's stack.
@@ -78,6 +81,28 @@ pub fn built_images(target_dir: &Path) -> Result<Vec<ImageLayout>> {
     Ok(layouts)
 }
 
+/// The layout of the C example's image at `path`; `None` when it was not linked.
+pub fn c_example_image(path: &Path) -> Result<Option<ImageLayout>> {
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let elf = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    layout(C_EXAMPLE_TARGET, &elf).map(Some)
+}
+
+/// Flash the C API adds to a Cortex-M7 image: the C example's flash minus the Rust
+/// firmware's (both embed the same model and map), negative when it takes less; `None`
+/// unless both images are in `layouts`.
+pub fn capi_flash_delta(layouts: &[ImageLayout]) -> Option<i64> {
+    let flash = |target: &str| {
+        layouts
+            .iter()
+            .find(|l| l.target == target)
+            .map(|l| l.flash_bytes as i64)
+    };
+    Some(flash(C_EXAMPLE_TARGET)? - flash("thumbv7em-none-eabihf")?)
+}
+
 /// The layouts as a markdown table, bytes.
 pub fn markdown(layouts: &[ImageLayout]) -> String {
     let mut out = format!(
@@ -116,6 +141,27 @@ mod tests {
             .nth(2)
             .expect("a row")
             .starts_with("| host |"));
+    }
+
+    #[test]
+    fn the_c_api_delta_compares_the_two_cortex_m7_images() {
+        let image = |target: &str, flash_bytes| ImageLayout {
+            target: target.to_owned(),
+            sections: [0; SECTIONS.len()],
+            flash_bytes,
+            ram_bytes: 0,
+        };
+        let rust = image("thumbv7em-none-eabihf", 1_481_032);
+        let c = image(C_EXAMPLE_TARGET, 1_458_044);
+        let x86 = image("x86_64-unknown-linux-gnu", 2_000_000);
+        assert_eq!(
+            capi_flash_delta(&[x86.clone(), rust.clone(), c.clone()]),
+            Some(-22_988)
+        );
+        assert_eq!(capi_flash_delta(&[x86, rust]), None);
+        assert_eq!(capi_flash_delta(&[c]), None);
+        let missing = Path::new("capi/example/build/no-such-image.elf");
+        assert_eq!(c_example_image(missing).expect("no error"), None);
     }
 
     #[test]

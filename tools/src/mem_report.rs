@@ -93,6 +93,14 @@ pub struct Args {
     /// it): their section sizes are reported after the rows.
     #[arg(long, default_value = "firmware/target")]
     pub images: PathBuf,
+    /// The C example's image (`bash capi/example/qemu.sh`), reported after the firmware
+    /// images with the flash the C API adds against the Rust Cortex-M7 image.
+    #[arg(long, default_value = "capi/example/build/gomatch-c-example.elf")]
+    pub c_image: PathBuf,
+    /// Fail when the C example's image takes more than this many bytes of flash beyond
+    /// the Rust Cortex-M7 image's, or when either image is missing.
+    #[arg(long)]
+    pub budget_capi_flash: Option<i64>,
     /// Report only the firmware images' layout (no localization is measured).
     #[arg(long)]
     pub images_only: bool,
@@ -697,7 +705,8 @@ pub fn run(args: &Args) -> Result<()> {
         print!("{}", markdown(&report.rows));
         report.rows
     };
-    let images = image_layout::built_images(&args.images)?;
+    let mut images = image_layout::built_images(&args.images)?;
+    images.extend(image_layout::c_example_image(&args.c_image)?);
     if images.is_empty() {
         println!(
             "\nfirmware images: none linked under {} (bash firmware/build.sh; bash firmware/qemu.sh cortex-m7|aarch64)",
@@ -705,9 +714,16 @@ pub fn run(args: &Args) -> Result<()> {
         );
     } else {
         println!(
-            "\nfirmware images under {} (bytes):\n\n{}",
+            "\nfirmware images under {} and {} (bytes):\n\n{}",
             args.images.display(),
+            args.c_image.display(),
             image_layout::markdown(&images)
+        );
+    }
+    let capi_delta = image_layout::capi_flash_delta(&images);
+    if let Some(delta) = capi_delta {
+        println!(
+            "C API: the C example takes {delta:+} B of flash against the Rust Cortex-M7 image"
         );
     }
     if let Some(path) = &args.json {
@@ -715,12 +731,25 @@ pub fn run(args: &Args) -> Result<()> {
         std::fs::write(path, serde_json::to_string_pretty(&json)? + "\n")
             .with_context(|| format!("writing {}", path.display()))?;
     }
-    let violations = budget_violations(&rows, args);
+    let mut violations = budget_violations(&rows, args);
+    if let Some(budget) = args.budget_capi_flash {
+        match capi_delta {
+            Some(delta) if delta > budget => violations.push(format!(
+                "C API: the C example's image takes {delta} B of flash beyond the Rust image's, over the budget of {budget} B"
+            )),
+            Some(_) => {}
+            None => violations.push(format!(
+                "C API: no flash comparison without both Cortex-M7 images ({} and {}/thumbv7em-none-eabihf/release/gomatch-firmware)",
+                args.c_image.display(),
+                args.images.display()
+            )),
+        }
+    }
     if !violations.is_empty() {
         for v in &violations {
             eprintln!("over budget: {v}");
         }
-        bail!("{} rows over budget", violations.len());
+        bail!("{} over budget", violations.len());
     }
     Ok(())
 }
