@@ -4,7 +4,7 @@ use core::mem::{align_of, size_of};
 
 use gomatch::{Map, Model};
 
-use crate::checked;
+use crate::error::checked;
 use crate::error::{blob_error, gomatch_error};
 
 /// Private: 64-bit words of a `gomatch_model`'s storage (its validated tensor table).

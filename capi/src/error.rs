@@ -198,6 +198,17 @@ pub extern "C" fn gomatch_failure_str(failure: u32) -> *const c_char {
     text.as_ptr()
 }
 
+/// `pointer` when it is non-null and aligned for `T`.
+pub(crate) fn checked<T>(pointer: *const T) -> Result<core::ptr::NonNull<T>, gomatch_error> {
+    let Some(pointer) = core::ptr::NonNull::new(pointer.cast_mut()) else {
+        return Err(gomatch_error::GOMATCH_ERROR_NULL_POINTER);
+    };
+    if !pointer.is_aligned() {
+        return Err(gomatch_error::GOMATCH_ERROR_MISALIGNED);
+    }
+    Ok(pointer)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -58,17 +58,6 @@ pub use types::{
     GOMATCH_MAX_VIEWS,
 };
 
-/// `pointer` when it is non-null and aligned for `T`.
-pub(crate) fn checked<T>(pointer: *const T) -> Result<core::ptr::NonNull<T>, gomatch_error> {
-    let Some(pointer) = core::ptr::NonNull::new(pointer.cast_mut()) else {
-        return Err(gomatch_error::GOMATCH_ERROR_NULL_POINTER);
-    };
-    if !pointer.is_aligned() {
-        return Err(gomatch_error::GOMATCH_ERROR_MISALIGNED);
-    }
-    Ok(pointer)
-}
-
 /// A panic is a bug of this library (every input is checked first): on a bare-metal
 /// target, stop at once with an undefined instruction rather than unwind into C.
 #[cfg(target_os = "none")]

@@ -5,7 +5,7 @@ use gomatch::link::{
     encode_frame, LinkError, LocalizeReply, Response, ResponseBody, MAX_RESPONSE_LEN, TX_FRAME_LEN,
 };
 
-use crate::checked;
+use crate::error::checked;
 use crate::error::gomatch_error::{self, *};
 use crate::localizer::{gomatch_localizer, last_outcome, Last};
 

@@ -11,7 +11,7 @@ use gomatch::{Localizer, Map, Model};
 use half::f16;
 
 use crate::blobs::{gomatch_map, gomatch_model, opened_map, opened_model};
-use crate::checked;
+use crate::error::checked;
 use crate::error::{gomatch_error, query_error};
 use crate::types::{
     gomatch_inlier, gomatch_query, gomatch_result, gomatch_view_selection, gomatch_views, narrow,

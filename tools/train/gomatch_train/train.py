@@ -30,7 +30,7 @@ import time
 import numpy as np
 import torch
 
-from . import compiled
+from . import compiled, run_state
 from .config import ModelConfig
 from .dataset import load_samples, subsample
 from .evaluate import Totals, assess, assess_batch
@@ -43,7 +43,7 @@ CHECKPOINT = "checkpoint.pt"
 # Options that must not change when a run is resumed (they define what the run computes).
 FIXED_ON_RESUME = (
     "train", "val", "seed", "batch", "lr", "max_points", "min_points", "outlier_rate", "val_max_points",
-    "feature_dim", "encoder_blocks", "classifier_blocks", "init", "batched",
+    "feature_dim", "encoder_blocks", "classifier_blocks", "init", "continue_from", "batched",
 )  # fmt: skip
 NO_OUTLIER_CONTROL = (0.0, 1.0)  # outlier-rate range that keeps every point (the paper's tests)
 VAL_MIN_POINTS = 10  # reference: evaluation counts a sample as failed below 10 points; no other filtering
@@ -80,6 +80,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt when it exists")
     p.add_argument("--init", default=None, metavar="MODEL",
                    help="start a new run from the weights of this export (a fine-tuning stage; same configuration)")
+    p.add_argument("--continue", dest="continue_from", default=None, metavar="STATE",
+                   help="start from a staged run's state (run_state.py: weights and Adam state) on new data")
     p.add_argument("--max-minutes", type=float, default=None, help="checkpoint and stop after this wall time")
     p.add_argument("--max-steps", type=int, default=None, help="checkpoint and stop after this many optimizer steps")
     p.add_argument("--ckpt-minutes", type=float, default=10.0, help="checkpoint interval within an epoch")
@@ -231,6 +233,22 @@ class Run:
         if args.init is not None:
             self.start_from(args.init)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=args.lr, fused=True)
+        self.samples = 0  # samples trained on in this run
+        self.totals = Totals()  # training losses and counts of this process since the run (or resume) started
+        if args.continue_from is not None:
+            self.continue_from(args.continue_from)
+
+    def continue_from(self, path: str) -> None:
+        """Weights and Adam state of a staged run (`run_state.py`), whose configuration must be this run's."""
+        weights, optimizer_state, _ = run_state.unpack(run_state.load(path))
+        config = ModelConfig.from_json(run_state.load(path)["config"])
+        if config != self.model.config:
+            raise SystemExit(f"--continue {path}: configuration {config.to_json()} differs from this run's "
+                             f"{self.model.config.to_json()}")  # fmt: skip
+        self.model.load_state_dict(weights)
+        for group in optimizer_state["param_groups"]:
+            group["lr"] = self.args.lr
+        self.optimizer.load_state_dict(optimizer_state)
 
     def start_from(self, path: str) -> None:
         """Initial weights from an export, whose configuration must be this run's."""
@@ -250,6 +268,8 @@ class Run:
             "epoch": self.epoch,
             "next_batch": self.next_batch,
             "step": self.step,
+            "samples": self.samples,
+            "train_totals": self.totals.summary() if self.totals.samples else {},
             "best_val_loss": self.best_val_loss,
             "history": self.history,
             "options": self.fixed_options(),
@@ -273,6 +293,7 @@ class Run:
         self.epoch = state["epoch"]
         self.next_batch = state["next_batch"]
         self.step = state["step"]
+        self.samples = state.get("samples", 0)
         self.best_val_loss = state["best_val_loss"]
         self.history = state["history"]
         restore_rng_states(state["rng"])
@@ -353,7 +374,10 @@ def train(args, group: Group = Group()) -> dict:
             log(f"epoch {run.epoch}: {len(drawn)} samples in {len(batches)} batches{crops}")
         window, window_start = Totals(), time.monotonic()
         while run.next_batch < len(batches):
-            window.merge(run.train_batch(batches[run.next_batch], group))
+            batch_totals = run.train_batch(batches[run.next_batch], group)
+            window.merge(batch_totals)
+            run.totals.merge(batch_totals)
+            run.samples += len(batches[run.next_batch])
             run.next_batch += 1
             run.step += 1
             now = time.monotonic()
