@@ -1,0 +1,54 @@
+"""Staged runs: the committed state (weights exact, Adam moments in 8 bits) and `--continue` from it."""
+
+import json
+
+import torch
+
+from gomatch_train import run_state, stage, train
+from test_training import cli
+
+
+def test_moment_codes_keep_their_precision():
+    torch.manual_seed(0)
+    first = torch.randn(3000) * torch.logspace(-6, 0, 3000)
+    back = run_state.dequantize_signed(run_state.quantize_signed(first))
+    for block, restored in zip(run_state.blocks(first), run_state.blocks(back)):
+        assert (restored - block).abs().max() <= block.abs().max() / 254 + 1e-12
+    second = torch.rand(70_001) * torch.logspace(-9, -2, 70_001)
+    second[::7] = 0
+    back = run_state.dequantize_log(run_state.quantize_log(second))
+    positive = second > 0
+    assert torch.equal(back[~positive], second[~positive]), "zeros must stay exactly zero"
+    assert ((back[positive] - second[positive]).abs() / second[positive]).max() < 0.03
+    assert back.shape == second.shape
+
+
+def test_continue_restores_the_packed_weights_and_adam_state(data, tmp_path):
+    first = tmp_path / "first"
+    train.main(cli(data, first, "--epochs", "1"))
+    checkpoint = torch.load(first / "checkpoint.pt", weights_only=False)
+    assert checkpoint["samples"] > 0 and checkpoint["train_totals"]["samples"] > 0
+    packed = run_state.pack(checkpoint, {"stages": 1, "samples": checkpoint["samples"], "cpu_minutes": 0.1})
+    path = tmp_path / "state.pt"
+    run_state.save(packed, str(path))
+    assert path.stat().st_size < 8 * sum(t.numel() for t in checkpoint["model"].values()) + 200_000
+
+    run = train.Run(train.parse_args(cli(data, tmp_path / "second", "--continue", str(path), "--lr", "5e-4")))
+    assert all(torch.equal(t, checkpoint["model"][name]) for name, t in run.model.state_dict().items())
+    restored = run.optimizer.state_dict()
+    assert restored["param_groups"][0]["lr"] == 5e-4
+    for index, state in checkpoint["optimizer"]["state"].items():
+        got = restored["state"][index]
+        assert float(got["step"]) == float(state["step"])
+        torch.testing.assert_close(got["exp_avg"], state["exp_avg"], atol=state["exp_avg"].abs().max() / 200, rtol=0)
+        torch.testing.assert_close(got["exp_avg_sq"], state["exp_avg_sq"], rtol=0.07, atol=1e-30)
+    train.main(cli(data, tmp_path / "second", "--continue", str(path), "--epochs", "1"))
+    assert (tmp_path / "second" / "last.safetensors").exists()
+
+
+def test_schedule_gives_the_point_budget_of_the_run_part():
+    schedule = json.loads('[{"until_samples": 1000, "max_points": 256}, {"max_points": 1024}]')
+    assert stage.points_for(schedule, 0) == 256
+    assert stage.points_for(schedule, 999) == 256
+    assert stage.points_for(schedule, 1000) == 1024
+    assert stage.points_for([{"max_points": 256}], 10**9) == 256
