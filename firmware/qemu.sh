@@ -15,7 +15,7 @@ cd "$(dirname "$0")"
 repo=$(cd .. && pwd)
 board=${1:?usage: qemu.sh cortex-m7|aarch64}
 
-model="$repo/models/gomatch-int8.bin"
+model="${GOMATCH_FIRMWARE_MODEL:-$repo/models/gomatch-int8.bin}"
 if [ ! -f "$model" ]; then
   echo "SKIPPED: no shipped model $model to embed"
   exit 0
