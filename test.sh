@@ -7,6 +7,10 @@
 # Tests that need ../shared skip with a message when it is absent.
 set -euo pipefail
 cd "$(dirname "$0")"
+# The trainer's venv (tools/train/setup_venv.sh) also holds pycolmap, which the end-to-end test on freshly
+# detected keypoints runs (tests/tests/localize.rs).
+GOMATCH_PYTHON="$(tools/train/setup_venv.sh)/bin/python"
+export GOMATCH_PYTHON
 cargo test --workspace --release
 # The core without its default `link` feature (no device link) builds and passes on its own.
 cargo test -p gomatch --release --no-default-features --lib

@@ -3,8 +3,11 @@
 # the merged correspondences (every classifier probability, bit for bit) that the firmware images
 # printed on x86_64 (build.sh), Cortex-M7 and AArch64 (qemu.sh), and by the C example on the
 # Cortex-M7 (board c-cortex-m7: capi/example/qemu.sh, through the C API), kept in
-# firmware/target/<board>.log, with the host's, firmware/data/reply.hex (written by
-# `cargo run --release -p gomatch-sim -- firmware-reply --out firmware/data/reply.hex`).
+# firmware/target/<board>.log, with the host's at the board's capacity: firmware/data/reply.hex for the
+# capacity-256 images (x86_64, Cortex-M7, C example), firmware/data/reply-1024.hex for AArch64 (each
+# capacity applies its own acceptance rule), written by
+# `cargo run --release -p gomatch-sim -- firmware-reply --out firmware/data/reply.hex` and
+# `... firmware-reply --capacity 1024 --out firmware/data/reply-1024.hex`.
 #
 #   bash firmware/cross_isa.sh                # after build.sh, both qemu.sh runs and capi/example/qemu.sh
 #   bash firmware/cross_isa.sh x86_64         # only the boards named
@@ -30,8 +33,10 @@ for board in "${boards[@]}"; do
     failed=1
     continue
   fi
-  if diff -u --label "host (data/reply.hex)" --label "$board ($log)" \
-    data/reply.hex <(grep -E '^(reply bytes|correspondences digest)' "$log"); then
+  host=data/reply.hex
+  [ "$board" = aarch64 ] && host=data/reply-1024.hex
+  if diff -u --label "host ($host)" --label "$board ($log)" \
+    "$host" <(grep -E '^(reply bytes|correspondences digest)' "$log"); then
     echo "$board: reply bytes ($((hex_digits / 2))) and correspondences digest identical to the host's"
   else
     echo "$board: reply bytes differ from the host's" >&2

@@ -341,7 +341,7 @@ pub unsafe extern "C" fn gomatch_localize(
     match outcome {
         Ok(localization) => {
             head.last = Last::Localized(localization);
-            let min_confidence = CONFIG.acceptance.min_confidence;
+            let min_confidence = CONFIG.acceptance_rule(capacity).min_confidence;
             // SAFETY: checked.
             unsafe {
                 result.write(gomatch_result::from_localization(

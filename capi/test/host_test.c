@@ -1,10 +1,11 @@
 /* The C API on the host: the firmware query localized through the x86-64 static library at
- * capacities 256 and 1024 (the reply bytes and the correspondences digest must be the host's,
- * firmware/data/reply.hex: the same pose as the Rust firmware), and every error path. Each
+ * capacities 256 and 1024 (the reply bytes and the correspondences digest must be the host's at
+ * that capacity, firmware/data/reply.hex and reply-1024.hex: the same pose as the Rust firmware;
+ * each capacity has its own acceptance rule, so the confidence differs), and every error path. Each
  * gomatch_error that a check expects is recorded, and the test fails unless every code but
  * GOMATCH_ERROR_INTERNAL (which no input reaches: it would be a bug) was seen.
  *
- *   host_test MODEL_BLOB MAP_BLOB REPLY_HEX     (capi/test/run.sh builds and runs it)
+ *   host_test MODEL_BLOB MAP_BLOB REPLY_HEX_256 REPLY_HEX_1024   (capi/test/run.sh builds and runs it)
  */
 #include <math.h>
 #include <stdint.h>
@@ -85,11 +86,13 @@ static void fix_checksum(buffer b) {
   for (int i = 0; i < 4; i++) b.bytes[12 + i] = (uint8_t)(crc >> (8 * i));
 }
 
-/* The host's reply bytes (hex) and digest from reply.hex. */
-static char expected_reply[1024];
-static char expected_digest[16];
+/* The host's reply bytes (hex) and digest at one capacity, from its reply file. */
+typedef struct {
+  char reply[1024];
+  char digest[16];
+} expected_reply;
 
-static void read_expected(const char *path) {
+static void read_expected(const char *path, expected_reply *expected) {
   FILE *f = fopen(path, "r");
   if (!f) {
     perror(path);
@@ -100,11 +103,12 @@ static void read_expected(const char *path) {
     line[strcspn(line, "\n")] = 0;
     const char *colon = strrchr(line, ' ');
     if (!colon) continue;
-    if (strncmp(line, "reply bytes", 11) == 0) strcat(expected_reply, colon + 1);
+    if (strncmp(line, "reply bytes", 11) == 0) strcat(expected->reply, colon + 1);
     if (strncmp(line, "correspondences digest", 22) == 0)
-      snprintf(expected_digest, sizeof expected_digest, "%s", colon + 1);
+      snprintf(expected->digest, sizeof expected->digest, "%s", colon + 1);
   }
   fclose(f);
+  CHECK(strlen(expected->reply) > 0 && strlen(expected->digest) == 8);
 }
 
 static void hex(const uint8_t *bytes, size_t len, char *out) {
@@ -290,7 +294,7 @@ static void test_workspace(void) {
 }
 
 /* The firmware query at `capacity`: the host's reply bytes and digest. */
-static void test_firmware_query(uint32_t capacity) {
+static void test_firmware_query(uint32_t capacity, const expected_reply *expected) {
   void *memory;
   gomatch_localizer *localizer = workspace(capacity, &memory);
   gomatch_query query = firmware_query();
@@ -312,14 +316,14 @@ static void test_firmware_query(uint32_t capacity) {
 
   char got[1024];
   reply_hex(localizer, got);
-  CHECK(strcmp(got, expected_reply) == 0);
+  CHECK(strcmp(got, expected->reply) == 0);
   uint32_t digest = 0;
   EXPECT(gomatch_correspondences_digest(localizer, &digest), GOMATCH_OK);
   char digest_hex[16];
   snprintf(digest_hex, sizeof digest_hex, "%08x", digest);
-  CHECK(strcmp(digest_hex, expected_digest) == 0);
+  CHECK(strcmp(digest_hex, expected->digest) == 0);
   printf("capacity %u: reply bytes %s the host's, digest %s\n", capacity,
-         strcmp(got, expected_reply) == 0 ? "identical to" : "DIFFERENT from", digest_hex);
+         strcmp(got, expected->reply) == 0 ? "identical to" : "DIFFERENT from", digest_hex);
 
   /* The reply frame: COBS, no zero inside, one at the end. */
   uint8_t frame[GOMATCH_LINK_REPLY_BYTES];
@@ -327,7 +331,7 @@ static void test_firmware_query(uint32_t capacity) {
   EXPECT(gomatch_link_reply(localizer, QUERY_REQUEST_ID, GOMATCH_REPLY_FRAME, frame, sizeof frame,
                             &len),
          GOMATCH_OK);
-  CHECK(len > strlen(expected_reply) / 2 + 4 && len <= GOMATCH_LINK_REPLY_BYTES);
+  CHECK(len > strlen(expected->reply) / 2 + 4 && len <= GOMATCH_LINK_REPLY_BYTES);
   CHECK(frame[len - 1] == 0 && memchr(frame, 0, len - 1) == NULL);
   EXPECT(gomatch_link_reply(localizer, 1, GOMATCH_REPLY_FRAME, frame, 3, &len),
          GOMATCH_ERROR_BUFFER_TOO_SMALL);
@@ -370,10 +374,10 @@ static void test_firmware_query(uint32_t capacity) {
   EXPECT(gomatch_localize(localizer, &model, &map, &other, &result), GOMATCH_OK);
   char between[1024];
   reply_hex(localizer, between);
-  CHECK(strcmp(between, expected_reply) != 0);
+  CHECK(strcmp(between, expected->reply) != 0);
   EXPECT(gomatch_localize(localizer, &model, &map, &query, &result), GOMATCH_OK);
   reply_hex(localizer, got);
-  CHECK(strcmp(got, expected_reply) == 0);
+  CHECK(strcmp(got, expected->reply) == 0);
 
   /* A query refused before the localizer runs leaves no correspondences of earlier calls. */
   gomatch_query refused = query;
@@ -535,19 +539,20 @@ static void test_query_errors(void) {
 }
 
 int main(int argc, char **argv) {
-  if (argc != 4) {
-    fprintf(stderr, "usage: %s MODEL_BLOB MAP_BLOB REPLY_HEX\n", argv[0]);
+  if (argc != 5) {
+    fprintf(stderr, "usage: %s MODEL_BLOB MAP_BLOB REPLY_HEX_256 REPLY_HEX_1024\n", argv[0]);
     return 2;
   }
   buffer model_blob = read_file(argv[1]), map_blob = read_file(argv[2]);
-  read_expected(argv[3]);
-  CHECK(strlen(expected_reply) > 0 && strlen(expected_digest) == 8);
+  static expected_reply at_256, at_1024;
+  read_expected(argv[3], &at_256);
+  read_expected(argv[4], &at_1024);
 
   test_strings();
   test_blobs(model_blob, map_blob);
   test_workspace();
-  test_firmware_query(256);
-  test_firmware_query(1024);
+  test_firmware_query(256, &at_256);
+  test_firmware_query(1024, &at_1024);
   test_query_errors();
 
   static const unsigned codes[] = {0,  1,  2,  3,  4,  5,  6,  7,  8,  10, 11, 12,

@@ -25,7 +25,7 @@ out=target/capi/host_test
 cc -std=c11 -O2 -g -Wall -Wextra -Werror -Icapi/include capi/test/host_test.c \
   target/capi/libgomatch_capi.a -Wl,--gc-sections -lgcc_s -lutil -lrt -lpthread -lm -ldl -o "$out"
 
-run=("$out" "$model" firmware/data/map.bin firmware/data/reply.hex)
+run=("$out" "$model" firmware/data/map.bin firmware/data/reply.hex firmware/data/reply-1024.hex)
 case "${GOMATCH_VALGRIND:-}" in
   0) valgrind=no ;;
   1) command -v valgrind >/dev/null || { echo "GOMATCH_VALGRIND=1 but valgrind is not installed" >&2; exit 1; }

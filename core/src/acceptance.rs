@@ -29,6 +29,8 @@ use crate::error::{Error, Result};
 use crate::merge::Correspondence;
 use crate::pose::{camera_bearing, Pose};
 
+mod fitted;
+
 /// Number of features of [`Evidence::features`].
 pub const FEATURES: usize = 9;
 /// Cells per image side of the coverage grid.
@@ -97,31 +99,35 @@ pub struct AcceptanceRule {
     pub min_confidence: f32,
 }
 
-impl Default for AcceptanceRule {
-    fn default() -> Self {
-        Self::FITTED
-    }
-}
+/// The capacities (keypoints per query and points per view) the project fits a rule at.
+pub const FITTED_CAPACITIES: [usize; 3] = [128, 256, 1024];
 
 impl AcceptanceRule {
-    /// The rule fitted on the training scenes with the shipped model, its threshold keeping
-    /// 97 % of the right training poses (`tools/train/acceptance_reports.sh`,
-    /// `models/acceptance/rule.json`).
-    pub const FITTED: Self = Self {
-        bias: -6.617_597,
-        weights: [
-            1.391_758_8,
-            0.756_512_76,
-            5.158_784_4,
-            3.547_328_7,
-            2.506_542,
-            0.153_477_6,
-            1.193_282_1,
-            3.326_342_3,
-            -3.426_504,
-        ],
-        min_confidence: 0.468_466_04,
-    };
+    /// The rule fitted at the fitted capacity nearest to `capacity` (nearest on a log scale,
+    /// ties to the smaller): the evidence of a pose (inlier counts, spread, near-miss support)
+    /// depends on how many keypoints and points the localizer matches.
+    pub const fn for_capacity(capacity: usize) -> Self {
+        match fitted_capacity(capacity) {
+            128 => Self::FITTED_128,
+            256 => Self::FITTED_256,
+            _ => Self::FITTED_1024,
+        }
+    }
+
+    /// The rule fitted at N = 128 (`models/acceptance/128/rule.json`).
+    pub const FITTED_128: Self = Self::fitted(fitted::RULE_128);
+    /// The rule fitted at N = 256 (`models/acceptance/256/rule.json`).
+    pub const FITTED_256: Self = Self::fitted(fitted::RULE_256);
+    /// The rule fitted at N = 1024 (`models/acceptance/1024/rule.json`).
+    pub const FITTED_1024: Self = Self::fitted(fitted::RULE_1024);
+
+    const fn fitted((bias, weights, min_confidence): fitted::FittedRule) -> Self {
+        Self {
+            bias,
+            weights,
+            min_confidence,
+        }
+    }
 
     /// Accepts every pose (confidence 0.5, threshold 0): the bare `min_inliers` rule.
     pub const ACCEPT_ALL: Self = Self {
@@ -154,6 +160,78 @@ impl AcceptanceRule {
             });
         }
         Ok(())
+    }
+}
+
+/// The capacity of [`FITTED_CAPACITIES`] nearest to `capacity` on a log scale (ties to the
+/// smaller): 128 up to 181, 256 up to 512, 1024 above.
+pub const fn fitted_capacity(capacity: usize) -> usize {
+    // Geometric midpoints: sqrt(128 * 256) = 181.02, sqrt(256 * 1024) = 512.
+    if capacity <= 181 {
+        128
+    } else if capacity <= 512 {
+        256
+    } else {
+        1024
+    }
+}
+
+/// The wrong shares of the [`OperatingPoint`]s fitted at each capacity.
+pub const OPERATING_SHARES: [f32; 4] = [0.005, 0.01, 0.02, 0.05];
+
+/// A threshold of a fitted rule and what it gave on the training scenes: the least
+/// confidence at which at most `max_wrong` of the accepted poses were wrong, and the share
+/// of the right poses it kept.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct OperatingPoint {
+    /// Largest share of wrong poses among the accepted ones (one of [`OPERATING_SHARES`]).
+    pub max_wrong: f32,
+    /// The threshold.
+    pub min_confidence: f32,
+    /// Share of the right training poses accepted at that threshold.
+    pub recall: f32,
+}
+
+impl OperatingPoint {
+    /// The operating points of the rule fitted at `capacity`'s [`fitted_capacity`], strictest
+    /// (smallest `max_wrong`) first.
+    pub const fn for_capacity(capacity: usize) -> &'static [Self; OPERATING_SHARES.len()] {
+        const AT_128: [OperatingPoint; 4] = OperatingPoint::fitted(fitted::POINTS_128);
+        const AT_256: [OperatingPoint; 4] = OperatingPoint::fitted(fitted::POINTS_256);
+        const AT_1024: [OperatingPoint; 4] = OperatingPoint::fitted(fitted::POINTS_1024);
+        match fitted_capacity(capacity) {
+            128 => &AT_128,
+            256 => &AT_256,
+            _ => &AT_1024,
+        }
+    }
+
+    const fn fitted(points: fitted::FittedPoints) -> [Self; 4] {
+        let mut out = [Self {
+            max_wrong: 0.0,
+            min_confidence: 0.0,
+            recall: 0.0,
+        }; 4];
+        let mut i = 0;
+        while i < out.len() {
+            let (max_wrong, min_confidence, recall) = points[i];
+            out[i] = Self {
+                max_wrong,
+                min_confidence,
+                recall,
+            };
+            i += 1;
+        }
+        out
+    }
+
+    /// The strictest of `points` a pose of this confidence passes (`None`: none).
+    pub fn strictest_passed(points: &[Self], confidence: f32) -> Option<Self> {
+        points
+            .iter()
+            .filter(|p| confidence >= p.min_confidence)
+            .min_by(|a, b| a.max_wrong.total_cmp(&b.max_wrong))
+            .copied()
     }
 }
 
@@ -323,18 +401,62 @@ mod tests {
     }
 
     #[test]
+    fn each_capacity_takes_the_rule_fitted_nearest_to_it() {
+        for (capacity, fitted) in [
+            (1, 128),
+            (128, 128),
+            (181, 128),
+            (182, 256),
+            (256, 256),
+            (512, 256),
+            (513, 1024),
+            (1024, 1024),
+            (usize::MAX, 1024),
+        ] {
+            assert_eq!(fitted_capacity(capacity), fitted, "{capacity}");
+            assert_eq!(
+                AcceptanceRule::for_capacity(capacity),
+                AcceptanceRule::for_capacity(fitted)
+            );
+        }
+        for n in FITTED_CAPACITIES {
+            assert_eq!(AcceptanceRule::for_capacity(n).check(), Ok(()));
+            let points = OperatingPoint::for_capacity(n);
+            let shares = points.map(|p| p.max_wrong);
+            assert_eq!(shares, OPERATING_SHARES);
+        }
+    }
+
+    #[test]
+    fn a_confidence_passes_the_strictest_point_at_or_below_it() {
+        let point = |max_wrong, min_confidence| OperatingPoint {
+            max_wrong,
+            min_confidence,
+            recall: 0.5,
+        };
+        let points = [point(0.005, 0.95), point(0.01, 0.8), point(0.05, 0.4)];
+        let passed = |c| OperatingPoint::strictest_passed(&points, c).map(|p| p.max_wrong);
+        assert_eq!(passed(0.99), Some(0.005));
+        assert_eq!(passed(0.95), Some(0.005));
+        assert_eq!(passed(0.9), Some(0.01));
+        assert_eq!(passed(0.4), Some(0.05));
+        assert_eq!(passed(0.3), None);
+        assert_eq!(passed(f32::NAN), None);
+    }
+
+    #[test]
     fn a_rule_with_non_finite_weights_or_threshold_is_invalid() {
         let invalid = Err(Error::InvalidConfig {
             parameter: "acceptance",
         });
-        let mut rule = AcceptanceRule::FITTED;
+        let mut rule = AcceptanceRule::FITTED_1024;
         assert_eq!(rule.check(), Ok(()));
         rule.weights[3] = f32::NAN;
         assert_eq!(rule.check(), invalid);
         for threshold in [-0.1, 1.5, f32::NAN] {
             let rule = AcceptanceRule {
                 min_confidence: threshold,
-                ..AcceptanceRule::FITTED
+                ..AcceptanceRule::FITTED_1024
             };
             assert_eq!(rule.check(), invalid);
         }

@@ -139,8 +139,9 @@ pub struct LocalizerConfig {
     /// always has 3, so a pose must be confirmed by at least one more correspondence).
     pub min_inliers: usize,
     /// Decides, from the pose's [`Evidence`], whether a pose with `min_inliers` inliers is
-    /// trusted ([`Failure::LowConfidence`] when not).
-    pub acceptance: AcceptanceRule,
+    /// trusted ([`Failure::LowConfidence`] when not); `None`: the rule fitted at the
+    /// localizer's capacity, [`AcceptanceRule::for_capacity`].
+    pub acceptance: Option<AcceptanceRule>,
 }
 
 impl Default for LocalizerConfig {
@@ -151,13 +152,22 @@ impl Default for LocalizerConfig {
 
 impl LocalizerConfig {
     /// [`RansacConfig::new`], `min_matches` and `min_inliers` = [`MIN_CORRESPONDENCES`],
-    /// [`AcceptanceRule::FITTED`].
+    /// the acceptance rule of the localizer's capacity.
     pub const fn new() -> Self {
         Self {
             ransac: RansacConfig::new(),
             min_matches: MIN_CORRESPONDENCES,
             min_inliers: MIN_CORRESPONDENCES,
-            acceptance: AcceptanceRule::FITTED,
+            acceptance: None,
+        }
+    }
+
+    /// The acceptance rule a localizer of this capacity applies: the configured one, or the
+    /// one fitted at that capacity.
+    pub const fn acceptance_rule(&self, capacity: usize) -> AcceptanceRule {
+        match self.acceptance {
+            Some(rule) => rule,
+            None => AcceptanceRule::for_capacity(capacity),
         }
     }
 }
@@ -547,14 +557,15 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
                     view_centres,
                 };
                 let evidence = acceptance::gather(&support, query.keypoints, &query.camera);
-                let confidence = config.acceptance.confidence(&evidence);
+                let rule = config.acceptance_rule(N);
+                let confidence = rule.confidence(&evidence);
                 localization.evidence = Some(evidence);
                 localization.confidence = Some(confidence);
                 localization.candidate = Some(estimate.pose);
-                if !config.acceptance.accepts(confidence) {
+                if !rule.accepts(confidence) {
                     return Ok(Err(Failure::LowConfidence {
                         confidence,
-                        needed: config.acceptance.min_confidence,
+                        needed: rule.min_confidence,
                         inliers: estimate.inlier_count,
                     }));
                 }
@@ -618,7 +629,9 @@ fn check_config(config: &LocalizerConfig) -> Result<()> {
             parameter: "min_inliers",
         });
     }
-    config.acceptance.check()?;
+    if let Some(rule) = &config.acceptance {
+        rule.check()?;
+    }
     let ransac = &config.ransac;
     if ransac.max_iterations == 0 {
         return Err(Error::InvalidConfig {
@@ -1078,7 +1091,7 @@ mod tests {
             }
             l.merge(&map, &query, CAP).expect("merges");
             let config = LocalizerConfig {
-                acceptance,
+                acceptance: Some(acceptance),
                 ..LocalizerConfig::new()
             };
             let mut localization = Localization::failed(Failure::NoPoseFound);
@@ -1131,10 +1144,10 @@ mod tests {
         let map = Map::from_bytes(&f.blob).expect("valid map");
         let kp = keypoints(&f, &pose(0.1));
         let config = LocalizerConfig {
-            acceptance: AcceptanceRule {
+            acceptance: Some(AcceptanceRule {
                 min_confidence: 2.0,
-                ..AcceptanceRule::FITTED
-            },
+                ..AcceptanceRule::FITTED_1024
+            }),
             ..LocalizerConfig::new()
         };
         with_model(|model| {

@@ -14,6 +14,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, ensure, Context};
 use clap::{Args as ClapArgs, Parser};
+use gomatch::acceptance::OperatingPoint;
 use gomatch::localizer::{Failure, MAX_VIEWS};
 use gomatch::map::Map;
 use gomatch::{Camera, Localizer, LocalizerConfig, Model, Pose, Query, ViewSelection};
@@ -176,6 +177,10 @@ pub struct QueryOutcome {
     pub pose: Option<ColmapPose>,
     /// The acceptance rule's confidence in the best pose (`None` when RANSAC found none).
     pub confidence: Option<f32>,
+    /// The strictest operating point of the capacity's rule that confidence passes
+    /// ([`OperatingPoint::for_capacity`]: its share of wrong poses among the accepted
+    /// training poses, its threshold and recall); `None` when it passes none.
+    pub operating_point: Option<OperatingPoint>,
     /// Why not, when not localized.
     pub failure: Option<String>,
     /// The typed reason (the core's `Failure`).
@@ -410,6 +415,9 @@ impl Session<'_> {
             views_used: result.views_used,
             pose: result.outcome.as_ref().ok().map(ColmapPose::from),
             confidence: result.confidence,
+            operating_point: result.confidence.and_then(|c| {
+                OperatingPoint::strictest_passed(OperatingPoint::for_capacity(CAPACITY), c)
+            }),
             failure: result.outcome.err().map(|f| f.to_string()),
             failure_detail: result.outcome.err(),
             counts: result.counts.into(),
@@ -448,9 +456,13 @@ fn print_outcome(outcome: &QueryOutcome) {
     );
     match &outcome.failure {
         None => println!(
-            "{}: localized, confidence {:.3} ({summary})",
+            "{}: localized, confidence {:.3}{} ({summary})",
             outcome.name,
-            outcome.confidence.unwrap_or(f32::NAN)
+            outcome.confidence.unwrap_or(f32::NAN),
+            outcome.operating_point.map_or(String::new(), |p| format!(
+                " (passes the {} % operating point)",
+                p.max_wrong * 100.0
+            ))
         ),
         Some(reason) => println!("{}: NOT localized: {reason} ({summary})", outcome.name),
     }
@@ -639,6 +651,7 @@ mod tests {
             views_used: 0,
             pose: Some(colmap),
             confidence: Some(0.99),
+            operating_point: None,
             failure: None,
             failure_detail: None,
             counts: Counts::default(),

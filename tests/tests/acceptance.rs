@@ -1,10 +1,12 @@
 //! `gomatch-sim fit-acceptance`: the logistic fit and threshold on small hand-made example
-//! sets, the command on tiny reports, and the core's built-in rule equal to the committed
-//! fit (`models/acceptance/rule.json`).
+//! sets, the command on tiny reports, and the core's built-in rules equal to the committed
+//! fits at each capacity (`models/acceptance/<N>/rule.json`).
 
 use std::path::Path;
 
-use gomatch::acceptance::{AcceptanceRule, Evidence, FEATURES};
+use gomatch::acceptance::{
+    AcceptanceRule, Evidence, OperatingPoint, FEATURES, FITTED_CAPACITIES, OPERATING_SHARES,
+};
 use gomatch_sim::eval::fit::{
     fit, run, threshold_for, threshold_keeping, Args, Example, FitOutput, Operating, Scores,
 };
@@ -151,6 +153,7 @@ fn the_command_writes_a_rule_that_eval_reads() {
         max_wrong: None,
         min_recall: None,
         l2: 1e-2,
+        capacity: None,
         out: out.clone(),
     };
     // The ten training examples are all right: the fit still ends with finite weights.
@@ -159,13 +162,53 @@ fn the_command_writes_a_rule_that_eval_reads() {
     assert_eq!(read_rule(&out).unwrap(), written.rule());
     assert_eq!(written.training.candidates, 10);
     assert_eq!(written.training_scenes.len(), 1);
+    assert_eq!(written.capacity, CAPACITY);
+    assert_eq!(written.checked.map(|c| c.candidates), Some(6));
+    // One operating point per share, thresholds rising as the share falls.
+    let shares: Vec<f32> = written
+        .operating_points
+        .iter()
+        .map(|p| p.max_wrong)
+        .collect();
+    assert_eq!(shares, OPERATING_SHARES);
+    for pair in written.operating_points.windows(2) {
+        assert!(pair[0].min_confidence >= pair[1].min_confidence, "{pair:?}");
+    }
+    // Reports of another capacity than the one asked for are refused.
+    let other = Args {
+        capacity: Some(256),
+        ..args
+    };
+    let error = run(&other).unwrap_err().to_string();
+    assert!(error.contains("capacity 1024, not 256"), "{error}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// Each capacity's built-in rule and operating points are the committed fit at that
+/// capacity (`tools/train/refit_acceptance.sh` writes both), fitted for the shipped int8
+/// model.
 #[test]
-fn the_built_in_rule_is_the_committed_fit() {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models/acceptance/rule.json");
-    let committed = read_rule(&path).unwrap();
-    assert_eq!(AcceptanceRule::FITTED, committed);
-    assert_eq!(committed.weights.len(), FEATURES);
+fn the_built_in_rules_are_the_committed_fits() {
+    let models = Path::new(env!("CARGO_MANIFEST_DIR")).join("../models");
+    let sums = std::fs::read_to_string(models.join("SHA256SUMS")).unwrap();
+    let shipped = sums
+        .lines()
+        .find_map(|l| l.strip_suffix("  gomatch-int8.bin"))
+        .expect("the int8 blob's digest");
+    for n in FITTED_CAPACITIES {
+        let fitted_for =
+            std::fs::read_to_string(models.join(format!("acceptance/{n}/model.sha256")));
+        assert_eq!(fitted_for.unwrap().trim(), shipped, "refit the rule at {n}");
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join(format!("../models/acceptance/{n}/rule.json"));
+        let written: FitOutput =
+            serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+        assert_eq!(written.capacity, n);
+        assert_eq!(AcceptanceRule::for_capacity(n), read_rule(&path).unwrap());
+        assert_eq!(
+            OperatingPoint::for_capacity(n).as_slice(),
+            written.operating_points
+        );
+        assert_eq!(written.weights.len(), FEATURES);
+    }
 }

@@ -307,7 +307,7 @@ fn acceptance_counts_are_consistent_with_the_queries() {
     let report = evaluate(&scene, matching, &options(10, 4, 2), false).unwrap();
     print(&report);
     let a = report.acceptance.expect("recorded");
-    assert_eq!(a.rule, AcceptanceRule::FITTED);
+    assert_eq!(a.rule, AcceptanceRule::for_capacity(report.capacity));
     assert!(a.accepted_wrong <= a.accepted && a.accepted <= a.candidates);
     assert!(a.candidates_right <= a.candidates && a.candidates <= report.queries);
     assert_eq!(a.accepted, report.queries - report.failures);
@@ -347,7 +347,7 @@ fn acceptance_counts_are_consistent_with_the_queries() {
     };
     let strict = EvalOptions {
         localizer: LocalizerConfig {
-            acceptance: refuse_all,
+            acceptance: Some(refuse_all),
             ..LocalizerConfig::new()
         },
         ..options(10, 4, 2)

@@ -321,3 +321,128 @@ fn held_out_images_of_a_real_model_are_localized_from_text_and_database_keypoint
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The python with pycolmap that `tools/extract_keypoints.py` needs: `GOMATCH_PYTHON` (set by
+/// `./test.sh` to the trainer's venv), else that venv's default place.
+fn python_with_pycolmap() -> Option<PathBuf> {
+    let python = std::env::var_os("GOMATCH_PYTHON")
+        .map(PathBuf::from)
+        .or_else(|| {
+            let home = std::env::var_os("HOME")?;
+            Some(Path::new(&home).join(".cache/gomatch-venv/bin/python"))
+        })?;
+    let found = std::process::Command::new(&python)
+        .args(["-c", "import pycolmap"])
+        .output()
+        .is_ok_and(|o| o.status.success());
+    found.then_some(python)
+}
+
+/// What a user runs on new photos: SIFT detected anew on the held-out photos of colmap/mouse
+/// (`tools/extract_keypoints.py`, COLMAP's extractor through pycolmap: other keypoints, other
+/// counts than the reconstruction's), a map without those photos, `localize --database`.
+/// No reported pose may be wrong, and at least as many photos must be localized within
+/// 10 px as from the keypoints stored in the reconstruction.
+#[test]
+fn held_out_photos_with_freshly_detected_keypoints_are_localized_or_refused() {
+    let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let data = manifest.join("../../shared/data/colmap/mouse");
+    let model = manifest.join("../models/gomatch-int8.bin");
+    for needed in [&data.join("images"), &model] {
+        if !needed.exists() {
+            println!("SKIPPED: {} is absent", needed.display());
+            return;
+        }
+    }
+    let Some(python) = python_with_pycolmap() else {
+        println!("SKIPPED: no python with pycolmap (GOMATCH_PYTHON; tools/train/setup_venv.sh)");
+        return;
+    };
+    let scene = SceneSource::Colmap(data.clone()).load().unwrap();
+    let queries: Vec<&Image> = scene
+        .images
+        .values()
+        .enumerate()
+        .filter(|(i, _)| i % 7 == 3)
+        .map(|(_, image)| image)
+        .collect();
+    let names: Vec<String> = queries.iter().map(|i| i.name.clone()).collect();
+    let kept = exclude_images(&scene, &names).unwrap();
+    let dir = std::env::temp_dir().join(format!("gomatch-fresh-{}", std::process::id()));
+    let keypoint_dir = dir.join("keypoints");
+    std::fs::create_dir_all(&keypoint_dir).unwrap();
+    let file = |name: &str| dir.join(name).display().to_string();
+    std::fs::write(file("map.bin"), build_map(&kept).unwrap()).unwrap();
+    std::fs::write(file("pairs.txt"), pairs(&queries, &kept)).unwrap();
+    let mut list = String::new();
+    for image in &queries {
+        let camera = &scene.cameras[&image.camera_id];
+        writeln!(list, "{} {}", image.name, camera_line(camera)).unwrap();
+        let text = keypoint_text(image);
+        std::fs::write(keypoint_dir.join(format!("{}.txt", image.name)), text).unwrap();
+    }
+    std::fs::write(file("queries.txt"), &list).unwrap();
+    let extracted = std::process::Command::new(&python)
+        .arg(manifest.join("../tools/extract_keypoints.py"))
+        .arg(file("fresh.db"))
+        .arg(data.join("images"))
+        .args(&names)
+        .output()
+        .unwrap();
+    assert!(
+        extracted.status.success(),
+        "{}",
+        String::from_utf8_lossy(&extracted.stderr)
+    );
+    println!("{}", String::from_utf8_lossy(&extracted.stdout));
+
+    let model = model.display().to_string();
+    let (map, pairs_file, list_file) = (file("map.bin"), file("pairs.txt"), file("queries.txt"));
+    let common = [
+        "--map",
+        &map,
+        "--model",
+        &model,
+        "--pairs",
+        &pairs_file,
+        "--query-list",
+        &list_file,
+    ];
+    let fresh_db = file("fresh.db");
+    let fresh = localize(&[&common[..], &["--database", &fresh_db]].concat());
+    let stored_dir = keypoint_dir.display().to_string();
+    let stored = localize(&[&common[..], &["--keypoint-dir", &stored_dir]].concat());
+    let tally = |report: &LocalizeReport, what: &str| {
+        let errors = score(&scene, report);
+        for q in &report.per_query {
+            println!(
+                "{what} {}: {} keypoints, {} inliers, confidence {:?}, reprojection error {:?}",
+                q.name, q.keypoints_total, q.counts.inliers, q.confidence, errors[&q.name]
+            );
+        }
+        let right = errors.values().filter(|e| e.is_some_and(|e| e < 10.0));
+        let reported = errors.values().filter(|e| e.is_some()).count();
+        (right.count(), reported)
+    };
+    let (fresh_right, fresh_reported) = tally(&fresh, "fresh");
+    let (stored_right, stored_reported) = tally(&stored, "stored");
+    println!(
+        "fresh keypoints: {fresh_right} of {} within 10 px, {fresh_reported} reported; stored: \
+         {stored_right} within 10 px, {stored_reported} reported",
+        names.len()
+    );
+    // The fresh detections are not the reconstruction's keypoints.
+    for q in &fresh.per_query {
+        let image = queries.iter().find(|i| i.name == q.name).unwrap();
+        assert_ne!(q.keypoints_total, image.keypoints.len(), "{}", q.name);
+    }
+    assert_eq!(
+        fresh_right, fresh_reported,
+        "a reported pose is more than 10 px off"
+    );
+    assert!(
+        fresh_right >= stored_right,
+        "fresh keypoints localized {fresh_right}, stored ones {stored_right}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}

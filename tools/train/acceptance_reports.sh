@@ -2,11 +2,12 @@
 # Evaluation reports for fitting the acceptance rule (docs/evaluation.md, "Acceptance rule"): runs
 # `gomatch-sim eval --k 10 --seed 0` with the shipped int8 model on every training scene of ../shared/data
 # that has real outlier keypoints (COLMAP and OpenSfM; the validation scenes are never used) and writes
-# OUT_DIR/<name>.json (default models/acceptance/train-all), prints the acceptance figures of the rule the
+# OUT_DIR/<name>.json (default models/acceptance/1024/train), prints the acceptance figures of the rule the
 # reports were written with (tools/train/acceptance_table.py), then fits a rule on them, leaving out the
 # scenes whose reference poses are unreliable (EXCLUDE), checks it on the validation reports of
 # tools/train/eval_all.sh (models/eval-all/*-int8.json) and writes it to RULE (default
-# OUT_DIR/../rule.json, the fit's log beside it as rule.txt; copy it into AcceptanceRule::FITTED to ship it):
+# OUT_DIR/../rule.json, the fit's log beside it as rule.txt; tools/train/refit_acceptance.sh runs this per capacity
+# and writes the rules into the core):
 #
 #   tools/train/acceptance_reports.sh [OUT_DIR]
 #
@@ -20,7 +21,7 @@
 # resumes.
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/../.." && pwd)
-out=${1:-$repo/models/acceptance/train-all}
+out=${1:-$repo/models/acceptance/1024/train}
 queries=${QUERIES:-25}
 threads=${THREADS:-1}
 model=${MODEL:-$repo/models/gomatch-int8.bin}

@@ -2,8 +2,9 @@
 //! (`firmware/data/`), as the image prints it: the postcard message with its stage timings
 //! cleared (the one field that depends on the machine), in numbered hex lines
 //! `reply bytes (timings cleared) i/n: ...`, and the digest of the merged correspondences
-//! ([`gomatch::merge::digest`]). `firmware/data/reply.hex` holds them, and
-//! `firmware/cross_isa.sh` compares each board's lines with it byte for byte.
+//! ([`gomatch::merge::digest`]). `firmware/data/reply.hex` holds them at capacity 256,
+//! `firmware/data/reply-1024.hex` at 1024, and `firmware/cross_isa.sh` compares each board's
+//! lines with its capacity's byte for byte.
 
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
@@ -44,7 +45,8 @@ pub struct Args {
     /// Keypoint capacity of the localizer: 256 (Cortex-M7, x86_64) or 1024 (AArch64).
     #[arg(long, default_value_t = FIRMWARE_CAPACITY)]
     pub capacity: usize,
-    /// Also write the lines to this file (e.g. firmware/data/reply.hex).
+    /// Also write the lines to this file (firmware/data/reply.hex at 256,
+    /// firmware/data/reply-1024.hex at 1024).
     #[arg(long)]
     pub out: Option<PathBuf>,
 }

@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use clap::Parser;
-use gomatch::acceptance::{AcceptanceRule, Evidence, FEATURES};
+use gomatch::acceptance::{AcceptanceRule, Evidence, OperatingPoint, FEATURES, OPERATING_SHARES};
 use nalgebra::{SMatrix, SVector};
 use serde::{Deserialize, Serialize};
 
@@ -39,6 +39,10 @@ pub struct Args {
     /// L2 penalty on the standardised weights.
     #[arg(long, default_value_t = 1e-2)]
     pub l2: f64,
+    /// The localizer capacity the reports were evaluated at (`eval --capacity`); a report of
+    /// another capacity is an error. Default: the capacity of the first report.
+    #[arg(long)]
+    pub capacity: Option<usize>,
     /// Where to write the rule (JSON, read by `eval --acceptance`).
     #[arg(long)]
     pub out: PathBuf,
@@ -128,10 +132,16 @@ pub struct FitOutput {
     pub weights: [f32; FEATURES],
     /// Threshold.
     pub min_confidence: f32,
+    /// The capacity the reports were evaluated at.
+    pub capacity: usize,
     /// The training reports' scenes.
     pub training_scenes: Vec<String>,
     /// The rule on the training examples.
     pub training: Scores,
+    /// The rule on the checked examples (none: no `--check` reports).
+    pub checked: Option<Scores>,
+    /// The thresholds at each share of [`OPERATING_SHARES`] of wrong training poses.
+    pub operating_points: Vec<OperatingPoint>,
 }
 
 impl FitOutput {
@@ -294,6 +304,43 @@ pub fn fit(examples: &[Example], l2: f64, operating: Operating) -> anyhow::Resul
     Ok(rule)
 }
 
+/// The rule's thresholds at each share of [`OPERATING_SHARES`] of wrong training poses, and
+/// the share of right training poses each keeps.
+pub fn operating_points(rule: &AcceptanceRule, training: &[Example]) -> Vec<OperatingPoint> {
+    OPERATING_SHARES
+        .iter()
+        .map(|&share| {
+            let min_confidence = threshold_for(rule, training, f64::from(share));
+            let at = AcceptanceRule {
+                min_confidence,
+                ..*rule
+            };
+            let scores = Scores::of(&at, training);
+            let kept = scores.accepted - scores.accepted_wrong;
+            OperatingPoint {
+                max_wrong: share,
+                min_confidence,
+                recall: kept as f32 / scores.right.max(1) as f32,
+            }
+        })
+        .collect()
+}
+
+/// The capacity all reports share: `expected` when given, else the first report's.
+fn common_capacity(reports: &[Report], expected: Option<usize>) -> anyhow::Result<usize> {
+    let capacity = expected
+        .or_else(|| reports.first().map(|r| r.capacity))
+        .context("no reports")?;
+    if let Some(other) = reports.iter().find(|r| r.capacity != capacity) {
+        anyhow::bail!(
+            "{} was evaluated at capacity {}, not {capacity}",
+            other.scene,
+            other.capacity
+        );
+    }
+    Ok(capacity)
+}
+
 /// Precision and recall of the rule at other thresholds, on the training and the checked
 /// examples: the operating points a user can pick with `min_confidence`.
 fn print_operating_points(rule: &AcceptanceRule, training: &[Example], check: &[Example]) {
@@ -313,13 +360,19 @@ fn print_operating_points(rule: &AcceptanceRule, training: &[Example], check: &[
 
 /// Runs `gomatch-sim fit-acceptance`.
 pub fn run(args: &Args) -> anyhow::Result<()> {
+    let read_all = |paths: &[PathBuf]| {
+        paths
+            .iter()
+            .map(|p| read_report(p))
+            .collect::<anyhow::Result<Vec<_>>>()
+    };
+    let (reports, checks) = (read_all(&args.reports)?, read_all(&args.check)?);
+    let capacity = common_capacity(&reports, args.capacity)?;
+    common_capacity(&checks, Some(capacity))?;
     let mut training = Vec::new();
-    let mut scenes = Vec::new();
-    for path in &args.reports {
-        let report = read_report(path)?;
-        let examples = examples(&report);
+    for report in &reports {
+        let examples = examples(report);
         println!("{}: {} examples", report.scene, examples.len());
-        scenes.push(report.scene);
         training.extend(examples);
     }
     let operating = match (args.max_wrong, args.min_recall) {
@@ -329,12 +382,12 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     };
     let rule = fit(&training, args.l2, operating)?;
     let scores = Scores::of(&rule, &training);
+    println!("capacity {capacity}");
     println!("training: {}", scores.describe());
     println!("rule: {rule:?}");
     let mut checked = Vec::new();
-    for path in &args.check {
-        let report = read_report(path)?;
-        let examples = examples(&report);
+    for report in &checks {
+        let examples = examples(report);
         println!(
             "check {}: {}",
             report.scene,
@@ -342,16 +395,29 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         );
         checked.extend(examples);
     }
-    if !checked.is_empty() {
-        println!("check, all: {}", Scores::of(&rule, &checked).describe());
+    let checked_scores = (!checked.is_empty()).then(|| Scores::of(&rule, &checked));
+    if let Some(all) = &checked_scores {
+        println!("check, all: {}", all.describe());
     }
     print_operating_points(&rule, &training, &checked);
+    let operating_points = operating_points(&rule, &training);
+    for p in &operating_points {
+        println!(
+            "operating point: at most {} % wrong on training: min_confidence {}, recall {:.1} %",
+            p.max_wrong * 100.0,
+            p.min_confidence,
+            p.recall * 100.0
+        );
+    }
     let output = FitOutput {
         bias: rule.bias,
         weights: rule.weights,
         min_confidence: rule.min_confidence,
-        training_scenes: scenes,
+        capacity,
+        training_scenes: reports.into_iter().map(|r| r.scene).collect(),
         training: scores,
+        checked: checked_scores,
+        operating_points,
     };
     std::fs::write(&args.out, serde_json::to_string_pretty(&output)? + "\n")
         .with_context(|| format!("writing {}", args.out.display()))?;

@@ -899,7 +899,9 @@ pub fn evaluate(
         map_bytes: blob.len(),
         model_bytes,
         acceptance: Some(AcceptanceSummary::of(
-            options.localizer.acceptance,
+            options
+                .localizer
+                .acceptance_rule(options.protocol.max_keypoints),
             &per_query,
         )),
         per_query,
@@ -1079,10 +1081,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 seed: args.seed,
                 ..RansacConfig::new()
             },
-            acceptance: match &args.acceptance {
-                Some(path) => read_rule(path)?,
-                None => AcceptanceRule::FITTED,
-            },
+            acceptance: args.acceptance.as_deref().map(read_rule).transpose()?,
             ..LocalizerConfig::new()
         },
         threads: args.threads,

@@ -107,7 +107,8 @@ def train(spec: dict, state_path: Path, files: list, val: Path, out: Path, minut
     command = [
         sys.executable, "-m", "gomatch_train.train", "--train", *files, "--val", val, "--out", out,
         "--feature-dim", str(spec["width"]), "--encoder-blocks", str(spec["encoder_blocks"]),
-        "--classifier-blocks", str(spec["classifier_blocks"]), "--lr", str(spec["lr"]), "--batch", str(spec["batch"]),
+        "--classifier-blocks", str(spec["classifier_blocks"]), "--heads", str(spec.get("heads", 4)),
+        "--sinkhorn-iters", str(spec.get("sinkhorn_iters", 20)), "--lr", str(spec["lr"]), "--batch", str(spec["batch"]),
         "--max-points", str(points), "--epochs", "1000", "--max-minutes", str(minutes), "--ckpt-minutes", "10",
         "--log-every", "50", "--seed", str(stage), "--workers", "2", "--threads", "1", "--compile",
         *spec.get("trainer_options", []),

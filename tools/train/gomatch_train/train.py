@@ -43,7 +43,7 @@ CHECKPOINT = "checkpoint.pt"
 # Options that must not change when a run is resumed (they define what the run computes).
 FIXED_ON_RESUME = (
     "train", "val", "seed", "batch", "lr", "max_points", "min_points", "outlier_rate", "val_max_points",
-    "feature_dim", "encoder_blocks", "classifier_blocks", "init", "continue_from", "batched",
+    "feature_dim", "encoder_blocks", "classifier_blocks", "heads", "sinkhorn_iters", "init", "continue_from", "batched",
 )  # fmt: skip
 NO_OUTLIER_CONTROL = (0.0, 1.0)  # outlier-rate range that keeps every point (the paper's tests)
 VAL_MIN_POINTS = 10  # reference: evaluation counts a sample as failed below 10 points; no other filtering
@@ -77,6 +77,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--feature-dim", type=int, default=ModelConfig.feature_dim)
     p.add_argument("--encoder-blocks", type=int, default=ModelConfig.encoder_blocks)
     p.add_argument("--classifier-blocks", type=int, default=ModelConfig.classifier_blocks)
+    p.add_argument("--heads", type=int, default=ModelConfig.heads, help="cross-attention heads")
+    p.add_argument("--sinkhorn-iters", type=int, default=ModelConfig.sinkhorn_iters, help="maximum Sinkhorn iterations")
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt when it exists")
     p.add_argument("--init", default=None, metavar="MODEL",
                    help="start a new run from the weights of this export (a fine-tuning stage; same configuration)")
@@ -98,7 +100,11 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def model_config(args) -> ModelConfig:
     return ModelConfig(
-        feature_dim=args.feature_dim, encoder_blocks=args.encoder_blocks, classifier_blocks=args.classifier_blocks
+        feature_dim=args.feature_dim,
+        encoder_blocks=args.encoder_blocks,
+        classifier_blocks=args.classifier_blocks,
+        heads=args.heads,
+        sinkhorn_iters=args.sinkhorn_iters,
     )
 
 

@@ -1,0 +1,43 @@
+#!/usr/bin/env bash
+# Refits the acceptance rule at every capacity the project ships (128, 256, 1024) for the shipped int8 model, in
+# one command: per capacity N, the validation reports (`gomatch-sim eval` on the five validation scenes, every
+# query, k = 10, seed 0) in models/acceptance/N/validation, the training reports and the fit
+# (tools/train/acceptance_reports.sh, checked on those validation reports) in models/acceptance/N/{train,rule.json,
+# rule.txt}; then tools/train/render_acceptance.py writes the rules into the core
+# (core/src/acceptance/fitted.rs) and the operating points into docs/evaluation.md.
+#
+#   tools/train/refit_acceptance.sh
+#
+# Reports of a capacity are reused while models/acceptance/N/model.sha256 names the current model blob and
+# deleted (re-run) when it does not, so run this after every model change and commit models/acceptance and the
+# two generated files. Environment: CAPACITIES (default "128 256 1024"), FIT_ARGS (fit-acceptance flags, default
+# "--max-wrong 0.01": the threshold keeps at most 1 % wrong poses among the accepted training poses), MODEL, THREADS,
+# QUERIES as in acceptance_reports.sh, VAL_QUERIES (default 500: every query the protocol offers).
+set -euo pipefail
+repo=$(cd "$(dirname "$0")/../.." && pwd)
+model=${MODEL:-$repo/models/gomatch-int8.bin}
+data="$repo/../shared/data"
+[ -d "$data" ] || { echo "no ../shared/data beside the checkout" >&2; exit 1; }
+cargo build --release -q -p gomatch-sim --manifest-path "$repo/Cargo.toml"
+bin="$repo/target/release/gomatch-sim"
+digest=$(sha256sum "$model" | cut -d' ' -f1)
+for n in ${CAPACITIES:-128 256 1024}; do
+  dir="$repo/models/acceptance/$n"
+  if [ "$(cat "$dir/model.sha256" 2>/dev/null)" != "$digest" ]; then
+    rm -rf "$dir/train" "$dir/validation"
+  fi
+  mkdir -p "$dir/validation"
+  echo "$digest" >"$dir/model.sha256"
+  for scene in colmap/mouse colmap/sceaux colmap/mamechun colmap/softmurata opensfm/projcv_cc9d27; do
+    name=${scene#*/}
+    [ -s "$dir/validation/$name.json" ] && continue
+    "$bin" eval --"${scene%%/*}" "$data/$scene" --model "$model" --k 10 --capacity "$n" \
+      --queries "${VAL_QUERIES:-500}" --seed 0 --threads "${THREADS:-$(nproc)}" \
+      --json "$dir/validation/$name.json" >/dev/null
+  done
+  BIN="$bin" MODEL="$model" CAPACITY="$n" CHECK="$dir/validation/*.json" RULE="$dir/rule.json" \
+    FIT_ARGS="--capacity $n ${FIT_ARGS:---max-wrong 0.01}" THREADS="${THREADS:-$(nproc)}" \
+    "$repo/tools/train/acceptance_reports.sh" "$dir/train"
+done
+python3 "$repo/tools/train/render_acceptance.py"
+rustfmt --edition 2021 "$repo/core/src/acceptance/fitted.rs"  # the generated constants as cargo fmt lays them out
