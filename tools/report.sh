@@ -8,9 +8,9 @@
 # ones; "all" for every table):
 #   memory     gomatch-tools mem-report on the shipped blobs (seconds)
 #   images     gomatch-tools mem-report --images-only on the linked firmware images; with REPORT_BUILD_IMAGES=1
-#              the missing ones are built first (firmware/build.sh, firmware/qemu.sh: minutes, QEMU runs)
-#   speed      tools/bench_reference.sh (needs GOMATCH_SRC, ../shared and the trainer's virtualenv with torch:
-#              tools/train/setup_venv.sh; about 10 minutes)
+#              they are built first when none is (firmware/build.sh, and the ARM images' cargo builds: minutes)
+#   speed      tools/bench_reference.sh (needs GOMATCH_SRC, ../shared and the trainer's virtualenv with torch,
+#              which tools/train/setup_venv.sh creates and prints: GOMATCH_VENV or ~/.cache/gomatch-venv; ~10 minutes)
 #   callgrind  tools/callgrind.sh (needs valgrind and ../shared; about 10 minutes)
 #   firmware   firmware/qemu.sh cortex-m7 and aarch64 (needs the ARM targets and QEMU; 10-20 minutes)
 # A table that is not measured, or whose tools are missing, is copied from tools/report/<table>.md: the
@@ -84,9 +84,14 @@ skipped() { printf '%s\n\n' "Not measured by this regeneration: $1"; recorded "$
   echo
   images_built() { ls firmware/target/*/release/gomatch-firmware >/dev/null 2>&1; }
   if wants images && ! images_built && [ "${REPORT_BUILD_IMAGES:-0}" = 1 ]; then
+    # firmware/build.sh builds and runs the x86_64 image (seconds); the ARM images are only built here (as
+    # firmware/qemu.sh builds them, without its QEMU run), when their Rust targets are installed.
     bash firmware/build.sh >&2
-    bash firmware/qemu.sh cortex-m7 >&2
-    bash firmware/qemu.sh aarch64 >&2
+    for target in thumbv7em-none-eabihf aarch64-unknown-none; do
+      if rustup target list --installed 2>/dev/null | grep -qx "$target"; then
+        (cd firmware && GOMATCH_FIRMWARE_MODEL="$PWD/../models/gomatch-int8.bin" cargo build -q --release --target "$target") >&2
+      fi
+    done
   fi
   if wants images && images_built; then
     build_tools
@@ -106,13 +111,15 @@ skipped() { printf '%s\n\n' "Not measured by this regeneration: $1"; recorded "$
   echo "PyTorch forward and ours (\`workload time\`) alternating in rounds on the same machine, one thread;"
   echo "int8 weights with an f16 Sinkhorn cost (the device configuration), f32 weights with an f32 cost."
   echo
-  if wants speed && [ -n "${GOMATCH_SRC:-}" ] && [ -f ../shared/reference/gomatch_ref.py ]; then
+  venv_python="${GOMATCH_VENV:-$HOME/.cache/gomatch-venv}/bin/python"
+  if wants speed && [ -n "${GOMATCH_SRC:-}" ] && [ -f ../shared/reference/gomatch_ref.py ] &&
+    "$venv_python" -c "import torch" 2>/dev/null; then
     echo "$measured"
     echo
     bash tools/bench_reference.sh "$tmp/bench.json" > "$tmp/bench.txt"
     sed -n '/^|/p' "$tmp/bench.txt"
   elif wants speed; then
-    skipped "GOMATCH_SRC (a checkout of dvl-tum/gomatch) or ../shared/reference is missing." speed
+    skipped "GOMATCH_SRC (a checkout of dvl-tum/gomatch), ../shared/reference or the trainer's virtualenv with torch (tools/train/setup_venv.sh) is missing." speed
   else
     skipped "REPORT_MEASURE has no \`speed\`." speed
   fi
@@ -149,7 +156,9 @@ skipped() { printf '%s\n\n' "Not measured by this regeneration: $1"; recorded "$
   echo "\`bash firmware/qemu.sh cortex-m7\` and \`bash firmware/qemu.sh aarch64\`: the firmware query under QEMU with"
   echo "\`-icount shift=0\` (one instruction per virtual nanosecond, so the count does not depend on the host)."
   echo
-  if wants firmware && command -v qemu-system-arm >/dev/null && command -v qemu-system-aarch64 >/dev/null; then
+  arm_targets=$(rustup target list --installed 2>/dev/null | grep -cE '^(thumbv7em-none-eabihf|aarch64-unknown-none)$' || true)
+  if wants firmware && command -v qemu-system-arm >/dev/null && command -v qemu-system-aarch64 >/dev/null &&
+    [ "$arm_targets" = 2 ]; then
     echo "$measured"
     echo
     echo "| image | instructions per query |"
@@ -160,7 +169,7 @@ skipped() { printf '%s\n\n' "Not measured by this regeneration: $1"; recorded "$
       echo "| \`$board\` | $count |"
     done
   elif wants firmware; then
-    skipped "QEMU (qemu-system-arm, qemu-system-aarch64) is missing." firmware
+    skipped "QEMU (qemu-system-arm, qemu-system-aarch64) or the Rust targets thumbv7em-none-eabihf and aarch64-unknown-none are missing." firmware
   else
     skipped "REPORT_MEASURE has no \`firmware\`." firmware
   fi
