@@ -20,7 +20,7 @@
 //! | 8 | `ln(1 + d / depth)`: distance `d` from the camera centre to the nearest selected view's centre over the inliers' mean depth | a right pose sits among the views that see what it sees |
 //!
 //! The weights are fitted on training scenes by `gomatch-sim fit-acceptance` from
-//! `gomatch-sim eval` reports (see the README, "Acceptance rule").
+//! `gomatch-sim eval` reports (see docs/evaluation.md, "Acceptance rule").
 
 use serde::{Deserialize, Serialize};
 

@@ -75,7 +75,7 @@ impl Default for RansacConfig {
 impl RansacConfig {
     /// 10,000 iterations, threshold `1e-3`, confidence 0.999, seed 0, LO and refinement on.
     /// (PoseLib caps at 100,000; at 1000 the matcher's outputs, a few correct matches among
-    /// ~300, often went unsampled: README "Evaluation".)
+    /// ~300, often went unsampled: docs/evaluation.md, `--ransac-iterations`.)
     pub const fn new() -> Self {
         Self {
             max_iterations: 10_000,

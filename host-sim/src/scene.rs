@@ -315,7 +315,7 @@ impl Scene {
     /// [`Image::ranked_keypoints`] expects: when the first `block` stored keypoints are
     /// triangulated more often than the last ones over the scene (an extractor that stores
     /// its best keypoints first, seen in 7 of the 25 COLMAP training models with capped
-    /// images, README "Keypoint order"), every image's keypoints are reversed and the
+    /// images, docs/evaluation.md "Keypoint order"), every image's keypoints are reversed and the
     /// tracks renumbered. Which end is best is one bit per model (one extractor); scenes
     /// without capped images keep their order. Returns whether the order was reversed.
     pub fn orient_keypoint_order(&mut self, block: usize) -> bool {

@@ -9,7 +9,7 @@
 //! and every stage is within 1e-4 of the reference, with identical matches. f16 weights:
 //! agreement (`|A ∩ R| / |A ∪ R|`) >= 0.98; int8 with the converter's defaults
 //! (error-correcting GPTQ calibrated on synthetic pairs, encoder input layer in f32)
-//! >= 0.95 (see README.md, "Conformance with the reference").
+//! >= 0.95 (see docs/evaluation.md, "Conformance with the reference").
 
 use std::path::{Path, PathBuf};
 

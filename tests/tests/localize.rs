@@ -69,7 +69,7 @@ fn pairs(queries: &[&Image], kept: &Scene) -> String {
 }
 
 /// Keypoints as `x y score`, the score rising with the stored index: COLMAP's SIFT stores
-/// fine to coarse scales, so the best (largest) come last (README "Protocol").
+/// fine to coarse scales, so the best (largest) come last (docs/evaluation.md "Protocol").
 fn keypoint_text(image: &Image) -> String {
     image
         .keypoints

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# A short training session on one GPU: writes the training data, then trains one or more models side by side on
+# A short training run on one GPU: writes the training data, then trains one or more models side by side on
 # the GPU with --batched, each for MINUTES of wall time, and copies their exports, histories and logs to OUT
-# (every 20 s, so a session cut short still leaves its last checkpointed exports).
+# (every 20 s, so a run cut short still leaves its last checkpointed exports).
 #
 #   tools/train/train_gpu.sh GOMATCH_SIM DATA OUT MINUTES RUN...
 #

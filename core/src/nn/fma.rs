@@ -3,8 +3,9 @@
 //! The reference's BLAS accumulates every dot product with FMA instructions, in input
 //! order, and its normalisation kernels apply `x * alpha + beta` fused; using the same
 //! operation reproduces its f32 results bit for bit instead of within a few ulps (see
-//! README.md, "Conformance"). The result is exactly specified, so the hardware instruction
-//! and the software fallback give identical bits: host and device agree whichever is used.
+//! docs/evaluation.md, "Conformance with the reference"). The result is exactly specified,
+//! so the hardware instruction and the software fallback give identical bits: host and
+//! device agree whichever is used.
 
 /// `a * b + c`, rounded once: the FMA instruction when the build enables it.
 #[cfg(all(target_arch = "x86_64", target_feature = "fma"))]

@@ -22,7 +22,8 @@ pub const COL_BLOCK: usize = blocking::LINEAR_POINTS;
 pub use crate::limits::MAX_INPUT;
 /// Fewest points of a set on which the reference's BLAS sums with fused multiply-adds
 /// and the bias last; on smaller sets it starts from the bias and multiplies and adds
-/// separately (measured on the reference fixtures, see README.md, "Conformance").
+/// separately (measured on the reference fixtures, see docs/evaluation.md, "Conformance
+/// with the reference").
 pub const SMALL_SET: usize = 12;
 
 /// Output rows of the f32 kernel's register block ([`blocking`]).

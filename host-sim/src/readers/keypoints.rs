@@ -10,7 +10,7 @@
 //!   columns `x y scale orientation`, or 6 columns `x y a11 a12 a21 a22`, scale the mean
 //!   of the affine shape's two column norms, as COLMAP's `FeatureKeypoint::ComputeScale`);
 //! - last stored first for a 2-column COLMAP database (COLMAP's SIFT lists keypoints
-//!   octave by octave, fine to coarse: README "Protocol");
+//!   octave by octave, fine to coarse: docs/evaluation.md "Protocol");
 //! - first lines first for a text file or array without scores (list them best first).
 //!
 //! Ties keep the file order.

@@ -36,7 +36,7 @@ from . import run_state
 HERE = Path(__file__).resolve().parents[1]  # tools/train
 REPO = HERE.parents[1]
 VALIDATION = ["colmap/mouse", "colmap/sceaux", "colmap/mamechun", "colmap/softmurata", "opensfm/projcv_cc9d27"]
-SYNTHETIC_SEED_BASE = 1000  # seeds 0-4 are the demo's, the firmware query's and the first GPU sessions'
+SYNTHETIC_SEED_BASE = 1000  # seeds 0-4 are the demo's, the firmware query's and the first GPU runs'
 LOG_HEADER = (
     "| stage | finished | samples so far | CPU min so far | points | minutes | samples/s | training loss | "
     "val match P / R | AUC @1/5/10 px, N = 1024 (mouse; sceaux; mamechun; softmurata; projcv) | "
