@@ -75,9 +75,9 @@ def main() -> None:
         "pub(super) type FittedPoints = [(f32, f32, f32); 4];\n\n"
         + "\n".join(rust_rule(n, r) + "\n" + rust_points(n, r) for n, r in rules.items()))
     doc = DOC.read_text()
-    marked = re.compile(r"(<!-- operating-points -->\n).*?(\n<!-- /operating-points -->)", re.S)
+    marked = re.compile(r"(<!-- operating-points -->\n)(?:.*?\n)?(<!-- /operating-points -->)", re.S)
     if marked.search(doc):
-        DOC.write_text(marked.sub(lambda m: m.group(1) + doc_table(rules) + m.group(2), doc))
+        DOC.write_text(marked.sub(lambda m: m.group(1) + doc_table(rules) + "\n" + m.group(2), doc))
     else:
         print(f"{DOC}: no operating-points markers; table not written")
     print(f"wrote {RUST}")
