@@ -74,6 +74,15 @@ def test_cli_trains_exports_and_resumes_exactly(data, tmp_path, capsys):
     assert (resumed / "history.jsonl").read_text() == (straight / "history.jsonl").read_text()
 
 
+def test_heads_and_sinkhorn_iterations_are_options_the_export_records(data, tmp_path):
+    out = tmp_path / "device"
+    train.main(cli(data, out, "--max-steps", "1", "--heads", "2", "--sinkhorn-iters", "10"))
+    config = load_export(str(out / "last.safetensors")).config
+    assert (config.heads, config.sinkhorn_iters) == (2, 10)
+    with pytest.raises(SystemExit, match="--heads"):
+        train.main(cli(data, out, "--resume", "--heads", "4", "--sinkhorn-iters", "10"))
+
+
 def test_resume_refuses_changed_options(data, tmp_path):
     out = tmp_path / "run"
     train.main(cli(data, out, "--max-steps", "1"))
