@@ -68,6 +68,39 @@ fn pairs(queries: &[&Image], kept: &Scene) -> String {
     text
 }
 
+/// The held-out queries: every 7th image of the scene from the 4th.
+fn held_out(scene: &Scene) -> Vec<&Image> {
+    scene
+        .images
+        .values()
+        .enumerate()
+        .filter(|(i, _)| i % 7 == 3)
+        .map(|(_, image)| image)
+        .collect()
+}
+
+/// Writes in `dir` what a user has for the held-out `queries`: the map of the other images
+/// (`map.bin`), the pairs file (`pairs.txt`), the query list (`queries.txt`, also returned)
+/// and their stored keypoints as text files (`keypoints/NAME.txt`).
+fn write_held_out_inputs(scene: &Scene, queries: &[&Image], dir: &Path) -> String {
+    let names: Vec<String> = queries.iter().map(|i| i.name.clone()).collect();
+    let kept = exclude_images(scene, &names).unwrap();
+    assert_eq!(kept.images.len(), scene.images.len() - queries.len());
+    let keypoint_dir = dir.join("keypoints");
+    std::fs::create_dir_all(&keypoint_dir).unwrap();
+    std::fs::write(dir.join("map.bin"), build_map(&kept).unwrap()).unwrap();
+    std::fs::write(dir.join("pairs.txt"), pairs(queries, &kept)).unwrap();
+    let mut list = String::new();
+    for image in queries {
+        let camera = &scene.cameras[&image.camera_id];
+        writeln!(list, "{} {}", image.name, camera_line(camera)).unwrap();
+        let text = keypoint_text(image);
+        std::fs::write(keypoint_dir.join(format!("{}.txt", image.name)), text).unwrap();
+    }
+    std::fs::write(dir.join("queries.txt"), &list).unwrap();
+    list
+}
+
 /// Keypoints as `x y score`, the score rising with the stored index: COLMAP's SIFT stores
 /// fine to coarse scales, so the best (largest) come last (docs/evaluation.md "Protocol").
 fn keypoint_text(image: &Image) -> String {
@@ -169,31 +202,12 @@ fn held_out_images_of_a_real_model_are_localized_from_text_and_database_keypoint
         }
     }
     let scene = SceneSource::Colmap(data).load().unwrap();
-    let queries: Vec<&Image> = scene
-        .images
-        .values()
-        .enumerate()
-        .filter(|(i, _)| i % 7 == 3)
-        .map(|(_, image)| image)
-        .collect();
+    let queries = held_out(&scene);
     let names: Vec<String> = queries.iter().map(|i| i.name.clone()).collect();
-    let kept = exclude_images(&scene, &names).unwrap();
-    assert_eq!(kept.images.len(), scene.images.len() - queries.len());
-
     let dir = std::env::temp_dir().join(format!("gomatch-localize-{}", std::process::id()));
-    let keypoint_dir = dir.join("keypoints");
-    std::fs::create_dir_all(&keypoint_dir).unwrap();
+    let list = write_held_out_inputs(&scene, &queries, &dir);
     let file = |name: &str| -> PathBuf { dir.join(name) };
-    std::fs::write(file("map.bin"), build_map(&kept).unwrap()).unwrap();
-    std::fs::write(file("pairs.txt"), pairs(&queries, &kept)).unwrap();
-    let mut list = String::new();
-    for image in &queries {
-        let camera = &scene.cameras[&image.camera_id];
-        writeln!(list, "{} {}", image.name, camera_line(camera)).unwrap();
-        let text = keypoint_text(image);
-        std::fs::write(keypoint_dir.join(format!("{}.txt", image.name)), text).unwrap();
-    }
-    std::fs::write(file("queries.txt"), &list).unwrap();
+    let keypoint_dir = dir.join("keypoints");
     write_database(&file("database.db"), &scene, &queries);
 
     let path = |name: &str| file(name).display().to_string();
@@ -359,29 +373,12 @@ fn held_out_photos_with_freshly_detected_keypoints_are_localized_or_refused() {
         return;
     };
     let scene = SceneSource::Colmap(data.clone()).load().unwrap();
-    let queries: Vec<&Image> = scene
-        .images
-        .values()
-        .enumerate()
-        .filter(|(i, _)| i % 7 == 3)
-        .map(|(_, image)| image)
-        .collect();
+    let queries = held_out(&scene);
     let names: Vec<String> = queries.iter().map(|i| i.name.clone()).collect();
-    let kept = exclude_images(&scene, &names).unwrap();
     let dir = std::env::temp_dir().join(format!("gomatch-fresh-{}", std::process::id()));
+    write_held_out_inputs(&scene, &queries, &dir);
     let keypoint_dir = dir.join("keypoints");
-    std::fs::create_dir_all(&keypoint_dir).unwrap();
     let file = |name: &str| dir.join(name).display().to_string();
-    std::fs::write(file("map.bin"), build_map(&kept).unwrap()).unwrap();
-    std::fs::write(file("pairs.txt"), pairs(&queries, &kept)).unwrap();
-    let mut list = String::new();
-    for image in &queries {
-        let camera = &scene.cameras[&image.camera_id];
-        writeln!(list, "{} {}", image.name, camera_line(camera)).unwrap();
-        let text = keypoint_text(image);
-        std::fs::write(keypoint_dir.join(format!("{}.txt", image.name)), text).unwrap();
-    }
-    std::fs::write(file("queries.txt"), &list).unwrap();
     let extracted = std::process::Command::new(&python)
         .arg(manifest.join("../tools/extract_keypoints.py"))
         .arg(file("fresh.db"))
