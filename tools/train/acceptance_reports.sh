@@ -11,7 +11,8 @@
 #
 #   tools/train/acceptance_reports.sh [OUT_DIR]
 #
-# Environment: QUERIES per scene (default 25), THREADS (default 1), MODEL (default models/gomatch-int8.bin),
+# Environment: FRESH=1 also writes OUT_DIR/<name>-fresh.json (`eval --fresh-keypoints`: the query keypoints made
+# to look like a new detector run on the photo) and fits on both, QUERIES per scene (default 25), THREADS (default 1), MODEL (default models/gomatch-int8.bin),
 # BIN (a gomatch-sim binary to use instead of building target/release/gomatch-sim), CAPACITY (the localizer's
 # keypoints per query and points per view, default 1024), CHECK (the validation reports the fitted rule is
 # checked on, default models/eval-all/*-int8.json), EXCLUDE (an extended regular expression of report names
@@ -38,10 +39,17 @@ for dir in "$data"/colmap/* "$data"/opensfm/*; do
   kind=$(basename "$(dirname "$dir")")
   name=$(basename "$dir")
   case " $validation " in *" $kind/$name "*) continue ;; esac
-  [ -s "$out/$name.json" ] && continue
-  "$bin" eval --"$kind" "$dir" --model "$model" --k 10 --capacity "${CAPACITY:-1024}" --queries "$queries" \
-    --seed 0 --threads "$threads" --json "$out/$name.json" >"$out/$name.log" 2>&1 ||
-    echo "eval failed on $kind/$name (see $out/$name.log)"
+  variants=("")
+  [ "${FRESH:-0}" = 1 ] && variants+=("-fresh")
+  for variant in "${variants[@]}"; do
+    report="$out/$name$variant.json"
+    [ -s "$report" ] && continue
+    flags=()
+    [ -n "$variant" ] && flags=(--fresh-keypoints)
+    "$bin" eval --"$kind" "$dir" --model "$model" --k 10 --capacity "${CAPACITY:-1024}" --queries "$queries" \
+      --seed 0 --threads "$threads" "${flags[@]}" --json "$report" >"${report%.json}.log" 2>&1 ||
+      echo "eval failed on $kind/$name$variant (see ${report%.json}.log)"
+  done
 done
 python3 "$repo/tools/train/acceptance_table.py" "$out"/*.json
 rule=${RULE:-$(dirname "$out")/rule.json}

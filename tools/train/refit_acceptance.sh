@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Refits the acceptance rule at every capacity the project ships (128, 256, 1024) for the shipped int8 model, in
 # one command: per capacity N, the validation reports (`gomatch-sim eval` on the five validation scenes, every
-# query, k = 10, seed 0) in models/acceptance/N/validation, the training reports and the fit
+# query, k = 10, seed 0, with the reconstruction's keypoints and with --fresh-keypoints: <scene>-fresh.json) in
+# models/acceptance/N/validation, the training reports (both kinds, FRESH=1) and the fit
 # (tools/train/acceptance_reports.sh, checked on those validation reports) in models/acceptance/N/{train,rule.json,
 # rule.txt}; then tools/train/render_acceptance.py writes the rules into the core
 # (core/src/acceptance/fitted.rs) and the operating points into docs/evaluation.md.
@@ -30,12 +31,17 @@ for n in ${CAPACITIES:-128 256 1024}; do
   echo "$digest" >"$dir/model.sha256"
   for scene in colmap/mouse colmap/sceaux colmap/mamechun colmap/softmurata opensfm/projcv_cc9d27; do
     name=${scene#*/}
-    [ -s "$dir/validation/$name.json" ] && continue
-    "$bin" eval --"${scene%%/*}" "$data/$scene" --model "$model" --k 10 --capacity "$n" \
-      --queries "${VAL_QUERIES:-500}" --seed 0 --threads "${THREADS:-$(nproc)}" \
-      --json "$dir/validation/$name.json" >/dev/null
+    for variant in "" -fresh; do
+      report="$dir/validation/$name$variant.json"
+      [ -s "$report" ] && continue
+      flags=()
+      [ -n "$variant" ] && flags=(--fresh-keypoints)
+      "$bin" eval --"${scene%%/*}" "$data/$scene" --model "$model" --k 10 --capacity "$n" \
+        --queries "${VAL_QUERIES:-500}" --seed 0 --threads "${THREADS:-$(nproc)}" "${flags[@]}" \
+        --json "$report" >/dev/null
+    done
   done
-  BIN="$bin" MODEL="$model" CAPACITY="$n" CHECK="$dir/validation/*.json" RULE="$dir/rule.json" \
+  FRESH=1 BIN="$bin" MODEL="$model" CAPACITY="$n" CHECK="$dir/validation/*.json" RULE="$dir/rule.json" \
     FIT_ARGS="--capacity $n ${FIT_ARGS:---max-wrong 0.015}" THREADS="${THREADS:-$(nproc)}" \
     "$repo/tools/train/acceptance_reports.sh" "$dir/train"
 done

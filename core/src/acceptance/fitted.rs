@@ -8,59 +8,59 @@ pub(super) type FittedRule = (f32, [f32; 9], f32);
 /// (max_wrong, min_confidence, recall) of each operating point.
 pub(super) type FittedPoints = [(f32, f32, f32); 4];
 
-/// Fitted at N = 128 on 33 training scenes: 4 of 320 accepted wrong (1.2 %), recall 93.8 % (316 of 337);
-/// validation: 102 of 183 accepted wrong (55.7 %), recall 93.1 % (81 of 87).
+/// Fitted at N = 128 on 66 training scenes: 6 of 407 accepted wrong (1.5 %), recall 83.7 % (401 of 479);
+/// validation: 162 of 257 accepted wrong (63.0 %), recall 86.4 % (95 of 110).
 pub(super) const RULE_128: FittedRule = (
-    -9.256651,
+    -8.803386,
     [
-        1.6563512, 1.4961925, 8.531201, 3.276268, 6.7680645, 0.08043703, 4.572044, 4.708362,
-        -3.735524,
+        1.8668717, 1.432722, 12.344821, 1.3665212, 6.48301, 0.1909943, 7.4372773, 2.984233,
+        -3.728528,
     ],
-    0.5818674,
+    0.6439986,
 );
 
 /// The operating points of [`RULE_128`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_128: FittedPoints = [
-    (0.005, 0.8317269, 0.8486647),
-    (0.01, 0.591501, 0.9376855),
-    (0.02, 0.5522337, 0.94658756),
-    (0.05, 0.40429953, 0.9792285),
+    (0.005, 0.89771396, 0.6764092),
+    (0.01, 0.8105916, 0.76409185),
+    (0.02, 0.60013145, 0.8643006),
+    (0.05, 0.45616886, 0.9227557),
 ];
 
-/// Fitted at N = 256 on 33 training scenes: 5 of 336 accepted wrong (1.5 %), recall 94.0 % (331 of 352);
-/// validation: 107 of 217 accepted wrong (49.3 %), recall 85.3 % (110 of 129).
+/// Fitted at N = 256 on 66 training scenes: 7 of 501 accepted wrong (1.4 %), recall 88.4 % (494 of 559);
+/// validation: 225 of 409 accepted wrong (55.0 %), recall 85.6 % (184 of 215).
 pub(super) const RULE_256: FittedRule = (
-    -7.0828953,
+    -9.672822,
     [
-        1.4238312, 1.0967462, 6.1660037, 3.5959294, 1.6105877, 0.19030026, 5.7548513, 4.969498,
-        -3.6161904,
+        1.4956995, 1.0001861, 8.617315, 3.378216, 4.8496037, 0.20206235, 9.001601, 4.416845,
+        -3.4258006,
     ],
-    0.5937977,
+    0.6494284,
 );
 
 /// The operating points of [`RULE_256`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_256: FittedPoints = [
-    (0.005, 0.811457, 0.88352275),
-    (0.01, 0.59952366, 0.93465906),
-    (0.02, 0.5484142, 0.95170456),
-    (0.05, 0.39498684, 0.97727275),
+    (0.005, 0.812477, 0.7978533),
+    (0.01, 0.73933315, 0.8515206),
+    (0.02, 0.6191401, 0.8908766),
+    (0.05, 0.44327065, 0.94454384),
 ];
 
-/// Fitted at N = 1024 on 33 training scenes: 5 of 354 accepted wrong (1.4 %), recall 92.6 % (349 of 377);
-/// validation: 0 of 261 accepted wrong (0.0 %), recall 93.2 % (261 of 280).
+/// Fitted at N = 1024 on 66 training scenes: 8 of 553 accepted wrong (1.4 %), recall 85.4 % (545 of 638);
+/// validation: 2 of 478 accepted wrong (0.4 %), recall 89.3 % (476 of 533).
 pub(super) const RULE_1024: FittedRule = (
-    -6.510837,
+    -8.766651,
     [
-        1.4363335, 0.7312458, 5.3398433, 3.444856, 2.4723697, 0.15220402, 0.8947508, 3.1092288,
-        -3.4435365,
+        1.389538, 0.57464725, 6.4419494, 3.7431402, 4.3069873, 0.18503046, 5.2964516, 3.173614,
+        -3.6101875,
     ],
-    0.6889538,
+    0.75174564,
 );
 
 /// The operating points of [`RULE_1024`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_1024: FittedPoints = [
-    (0.005, 0.9792499, 0.59151196),
-    (0.01, 0.81594133, 0.8753316),
-    (0.02, 0.63997924, 0.9363395),
-    (0.05, 0.392311, 0.9893899),
+    (0.005, 0.9999238, 0.123824455),
+    (0.01, 0.7725276, 0.8448276),
+    (0.02, 0.72431326, 0.86206895),
+    (0.05, 0.50581414, 0.9451411),
 ];

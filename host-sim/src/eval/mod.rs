@@ -42,8 +42,8 @@ use serde::{Deserialize, Serialize};
 use crate::host::{default_model_path, register_font, HostClock, ModelArgs, CAPACITY};
 use crate::map::{build_map, map_point_index};
 use crate::protocol::{
-    error_auc, quantiles, query_reprojection_error, query_sample, select_queries, ProtocolParams,
-    QuerySample,
+    error_auc, quantiles, query_reprojection_error, query_sample, select_queries, FreshDetection,
+    ProtocolParams, QuerySample,
 };
 use crate::scene::{ImageId, PointId, Scene};
 use gomatch_blobs::view_features::{attach, build_view_features};
@@ -113,6 +113,10 @@ pub struct Args {
     /// option of `map features`; built before the timed queries, same results).
     #[arg(long)]
     pub view_features: bool,
+    /// Query keypoints as a new detector run on the photo would give them
+    /// ([`FreshDetection::TYPICAL`]) instead of the reconstruction's own.
+    #[arg(long)]
+    pub fresh_keypoints: bool,
 }
 
 /// Storage type of the Sinkhorn cost matrix.
@@ -342,6 +346,9 @@ pub struct Report {
     /// Whether the map's precomputed view features were used.
     #[serde(default)]
     pub view_features: bool,
+    /// Whether the query keypoints looked like a fresh detection (`eval --fresh-keypoints`).
+    #[serde(default)]
+    pub fresh_keypoints: bool,
     /// Protocol seed.
     pub seed: u64,
     /// Cap on RANSAC's minimal samples per query.
@@ -866,6 +873,7 @@ pub fn evaluate(
         k: options.protocol.k,
         capacity: options.protocol.max_keypoints,
         view_features: !features.is_empty(),
+        fresh_keypoints: options.protocol.fresh.is_some(),
         seed: options.protocol.seed,
         ransac_max_iterations: options.localizer.ransac.max_iterations,
         queries: n,
@@ -1074,7 +1082,10 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let mut scene = source.load()?;
     scene.name = source.name();
     let options = EvalOptions {
-        protocol: ProtocolParams::for_localizer(args.k, args.queries, args.seed, args.capacity),
+        protocol: ProtocolParams {
+            fresh: args.fresh_keypoints.then_some(FreshDetection::TYPICAL),
+            ..ProtocolParams::for_localizer(args.k, args.queries, args.seed, args.capacity)
+        },
         localizer: LocalizerConfig {
             ransac: RansacConfig {
                 max_iterations: args.ransac_iterations,
