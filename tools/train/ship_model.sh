@@ -13,6 +13,8 @@
 #    models/eval/<scene>-<precision>.json and .png (QUERIES: queries per scene, default all),
 #    and with each seed S of SEEDS models/eval/<scene>-<precision>-seed<S>.json;
 # 4. writes models/SHA256SUMS and prints the model card's tables (tools/train/eval_table.py).
+# Then refit the acceptance rules for the new blob (tools/train/refit_acceptance.sh) and regenerate the firmware
+# replies (docs/acceptance.md, docs/embedded.md).
 set -euo pipefail
 checkpoint=$(realpath "$1")
 queries=${2:-500}
