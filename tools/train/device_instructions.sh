@@ -6,7 +6,8 @@
 #
 #   tools/train/device_instructions.sh WIDTH ENCODER_BLOCKS CLASSIFIER_BLOCKS HEADS SINKHORN_ITERS
 #
-# Prints `instructions, whole query: N` and the per-stage counts. Needs what firmware/qemu.sh needs
+# Prints `instructions, whole query: N` and the per-stage counts. It overwrites firmware/target/cortex-m7.log: run
+# `bash firmware/qemu.sh cortex-m7` again before `firmware/cross_isa.sh`. Needs what firmware/qemu.sh needs
 # (qemu-system-arm, the thumbv7em-none-eabihf target) and the trainer's venv (setup_venv.sh).
 set -euo pipefail
 [ $# -eq 5 ] || { sed -n 2,9p "$0" >&2; exit 2; }

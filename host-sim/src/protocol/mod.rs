@@ -131,8 +131,11 @@ impl FreshDetection {
         // Weakest (largest rank share) stored first.
         scored.sort_by(|a, b| b.0.total_cmp(&a.0));
         Image {
+            id: image.id,
+            name: image.name.clone(),
+            camera_id: image.camera_id,
+            pose: image.pose,
             keypoints: scored.into_iter().map(|(_, k)| k).collect(),
-            ..image.clone()
         }
     }
 }

@@ -14,7 +14,7 @@ from gomatch_train.export import load_export
 GOMATCH_SIM = REPO_ROOT / "target" / "release" / "gomatch-sim"
 
 
-def test_gpu_session_script_writes_data_trains_every_run_and_collects_the_exports(tmp_path):
+def test_gpu_script_writes_data_trains_every_run_and_collects_the_exports(tmp_path):
     data = require(SHARED / "data")
     if not GOMATCH_SIM.exists():
         pytest.skip(f"{GOMATCH_SIM} not built (cargo build --release -p gomatch-sim); skipping")
