@@ -94,25 +94,34 @@ def validation_data(sim: Path, data: Path, cache: Path) -> Path:
     return out
 
 
-def points_for(schedule: list, samples: int) -> int:
-    """The point budget of the part of the schedule the run is in."""
+def part_for(schedule: list, samples: int) -> dict:
+    """The part of the schedule the run is in: its point budget (`max_points`) and optional training outlier-rate
+    range (`outlier_rate`: [LOW, HIGH], the trainer's `--outlier-rate`; the trainer's default 0.5-0.5 without)."""
     for part in schedule:
         if "until_samples" not in part or samples < part["until_samples"]:
-            return part["max_points"]
-    return schedule[-1]["max_points"]
+            return part
+    return schedule[-1]
 
 
-def train(spec: dict, state_path: Path, files: list, val: Path, out: Path, minutes: float, points: int,
+def budget_cell(part: dict) -> str:
+    """The log's "points" cell: the point budget and a non-default outlier-rate range."""
+    rate = part.get("outlier_rate")
+    return f"{part['max_points']}" + (f", outliers {rate[0]:g}-{rate[1]:g}" if rate else "")
+
+
+def train(spec: dict, state_path: Path, files: list, val: Path, out: Path, minutes: float, part: dict,
           stage: int) -> None:  # fmt: skip
     command = [
         sys.executable, "-m", "gomatch_train.train", "--train", *files, "--val", val, "--out", out,
         "--feature-dim", str(spec["width"]), "--encoder-blocks", str(spec["encoder_blocks"]),
         "--classifier-blocks", str(spec["classifier_blocks"]), "--heads", str(spec.get("heads", 4)),
         "--sinkhorn-iters", str(spec.get("sinkhorn_iters", 20)), "--lr", str(spec["lr"]), "--batch", str(spec["batch"]),
-        "--max-points", str(points), "--epochs", "1000", "--max-minutes", str(minutes), "--ckpt-minutes", "10",
+        "--max-points", str(part["max_points"]), "--epochs", "1000", "--max-minutes", str(minutes), "--ckpt-minutes", "10",
         "--log-every", "50", "--seed", str(stage), "--workers", "2", "--threads", "1", "--compile",
         *spec.get("trainer_options", []),
     ]  # fmt: skip
+    if "outlier_rate" in part:
+        command += ["--outlier-rate", *(str(r) for r in part["outlier_rate"])]
     if os.environ.get("DEVICE", "cpu") == "cuda":
         command = [c for c in command if c not in ("--compile",)]
         command[command.index("--workers") : command.index("--workers") + 4] = ["--device", "cuda", "--batched"]
@@ -165,14 +174,15 @@ def main(argv=None) -> None:
     work = cache / f"stage-{stage}"
     work.mkdir(parents=True, exist_ok=True)
     sim = REPO / "target" / "release" / "gomatch-sim"
-    points = points_for(spec["schedule"], counters["samples"])
+    part = part_for(spec["schedule"], counters["samples"])
+    points = part["max_points"]
     print(f"{args.run}: stage {stage}, {counters['samples']} samples so far, {points} points per set", flush=True)
 
     files = write_data(sim, data, work, stage, spec)
     val = validation_data(sim, data, cache)
     cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.monotonic()
-    train(spec, state_path, files, val, work / "train", args.minutes, points, stage)
+    train(spec, state_path, files, val, work / "train", args.minutes, part, stage)
     wall = time.monotonic() - start
     cpu_after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu_minutes = (cpu_after.ru_utime + cpu_after.ru_stime - cpu_before.ru_utime - cpu_before.ru_stime) / 60
@@ -190,7 +200,7 @@ def main(argv=None) -> None:
     v = result["validation"]
     row = (
         f"| {stage} | {time.strftime('%Y-%m-%d %H:%M')} | {counters['samples']:,} | {counters['cpu_minutes']:.0f} | "
-        f"{points} | {wall / 60:.0f} | {stage_samples / wall:.1f} | {train_loss:.3f} | "
+        f"{budget_cell(part)} | {wall / 60:.0f} | {stage_samples / wall:.1f} | {train_loss:.3f} | "
         f"{v['match_precision']:.3f} / {v['match_recall']:.3f} | {auc_cell(result[1024])} | {auc_cell(result[256])} |\n"
     )  # fmt: skip
     if not log_path.exists():

@@ -46,9 +46,13 @@ def test_continue_restores_the_packed_weights_and_adam_state(data, tmp_path):
     assert (tmp_path / "second" / "last.safetensors").exists()
 
 
-def test_schedule_gives_the_point_budget_of_the_run_part():
-    schedule = json.loads('[{"until_samples": 1000, "max_points": 256}, {"max_points": 1024}]')
-    assert stage.points_for(schedule, 0) == 256
-    assert stage.points_for(schedule, 999) == 256
-    assert stage.points_for(schedule, 1000) == 1024
-    assert stage.points_for([{"max_points": 256}], 10**9) == 256
+def test_schedule_gives_the_point_budget_and_outlier_rate_of_the_run_part():
+    schedule = json.loads(
+        '[{"until_samples": 1000, "max_points": 256}, {"max_points": 1024, "outlier_rate": [0.5, 0.9]}]'
+    )
+    assert stage.part_for(schedule, 0)["max_points"] == 256
+    assert stage.part_for(schedule, 999)["max_points"] == 256
+    assert stage.part_for(schedule, 1000)["max_points"] == 1024
+    assert stage.part_for([{"max_points": 256}], 10**9)["max_points"] == 256
+    assert stage.budget_cell(stage.part_for(schedule, 0)) == "256"
+    assert stage.budget_cell(stage.part_for(schedule, 1000)) == "1024, outliers 0.5-0.9"
