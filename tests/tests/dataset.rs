@@ -20,6 +20,7 @@ fn args(output: PathBuf) -> Args {
         k: 10,
         queries_per_scene: 4,
         seed: 9,
+        capacity: 1024,
     }
 }
 
@@ -168,6 +169,29 @@ fn synthetic_dataset_round_trips_through_safetensors() {
         assert_eq!(dataset.pts3d[2 * j + 1], b[1] as f32);
     }
     assert_eq!(dataset.matches[..n2], view.match_vector(n2)[..]);
+}
+
+#[test]
+fn capacity_caps_every_sample_as_the_localizer_does() {
+    let output = temp_file("capacity");
+    let mut arguments = args(output.clone());
+    arguments.scenes.synthetic = 2;
+    arguments.capacity = 128;
+    run(&arguments).unwrap();
+    let dataset = read_and_check(&output);
+    std::fs::remove_file(&output).unwrap();
+    assert_eq!(dataset.protocol["max_keypoints"], 128);
+    assert_eq!(dataset.protocol["max_points"], 128);
+    let sizes = |offsets: &[i64]| -> Vec<i64> { offsets.windows(2).map(|w| w[1] - w[0]).collect() };
+    let (keypoints, points) = (sizes(&dataset.offsets2d), sizes(&dataset.offsets3d));
+    assert!(keypoints.iter().chain(&points).all(|&n| n <= 128));
+    assert!(keypoints.contains(&128), "the cap binds on these scenes");
+
+    // Each sample is the protocol's at that capacity.
+    let scene = synthetic_scene(3, dataset.scene[0] as u64);
+    let sample = query_sample(&scene, dataset.query[0] as u32, &arguments.protocol()).unwrap();
+    assert_eq!(keypoints[0] as usize, sample.keypoints.len());
+    assert_eq!(points[0] as usize, sample.views[0].bearings.len());
 }
 
 #[test]

@@ -320,7 +320,8 @@ fn default_capacity() -> usize {
 /// Capacities `eval --capacity` offers.
 pub const CAPACITIES: [usize; 3] = [128, 256, CAPACITY];
 
-fn parse_capacity(text: &str) -> Result<usize, String> {
+/// A `--capacity` value: one of [`CAPACITIES`].
+pub(crate) fn parse_capacity(text: &str) -> Result<usize, String> {
     let n: usize = text.parse().map_err(|e| format!("{e}"))?;
     if CAPACITIES.contains(&n) {
         Ok(n)

@@ -12,7 +12,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use safetensors::tensor::TensorView;
 use safetensors::Dtype;
 
-use crate::host::ScenesArgs;
+use crate::eval::parse_capacity;
+use crate::host::{ScenesArgs, CAPACITY};
 use crate::protocol::synthetic::{collection_scene, synthetic_scene};
 use crate::protocol::{scene_samples, ProtocolParams, QuerySample};
 use crate::readers::SceneSource;
@@ -42,17 +43,16 @@ pub struct Args {
     /// Seed of the protocol's random choices.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Localizer capacity `N` whose caps the samples get: a query's keypoints and a view's
+    /// points as `eval --capacity N` (and the device) see them.
+    #[arg(long, default_value_t = CAPACITY, value_parser = parse_capacity)]
+    pub capacity: usize,
 }
 
 impl Args {
     /// The protocol parameters these arguments select (paper defaults otherwise).
     pub fn protocol(&self) -> ProtocolParams {
-        ProtocolParams {
-            k: self.k,
-            queries_per_scene: self.queries_per_scene,
-            seed: self.seed,
-            ..ProtocolParams::default()
-        }
+        ProtocolParams::for_localizer(self.k, self.queries_per_scene, self.seed, self.capacity)
     }
 }
 

@@ -66,8 +66,10 @@ def scene_arguments(data: Path, split: str) -> list:
     return out
 
 
-def write_data(sim: Path, data: Path, work: Path, stage: int, spec: dict) -> list:
-    """This stage's training files (real scenes, synthetic layouts and collections), written in parallel."""
+def write_data(sim: Path, data: Path, work: Path, stage: int, spec: dict, part: dict) -> list:
+    """This stage's training files (real scenes, synthetic layouts and collections), written in parallel, with the
+    keypoint and view-point caps of the run part's `data_capacity` (default 1024: `gomatch-sim dataset --capacity`)."""
+    capacity = ["--capacity", str(part.get("data_capacity", 1024))]
     jobs = {
         "real": [*scene_arguments(data, "train"), "--queries-per-scene", str(spec["real_queries_per_scene"]),
                  "--seed", str(stage)],
@@ -78,7 +80,8 @@ def write_data(sim: Path, data: Path, work: Path, stage: int, spec: dict) -> lis
     for name, options in jobs.items():
         out = work / f"{name}.safetensors"
         log = open(work / f"data-{name}.log", "w")
-        processes.append((subprocess.Popen([sim, "dataset", "--output", out, *options], stdout=log, stderr=log), out))
+        command = [sim, "dataset", "--output", out, *options, *capacity]
+        processes.append((subprocess.Popen(command, stdout=log, stderr=log), out))
     for process, _ in processes:
         if process.wait() != 0:
             raise SystemExit(f"gomatch-sim dataset failed (logs in {work})")
@@ -95,8 +98,9 @@ def validation_data(sim: Path, data: Path, cache: Path) -> Path:
 
 
 def part_for(schedule: list, samples: int) -> dict:
-    """The part of the schedule the run is in: its point budget (`max_points`) and optional training outlier-rate
-    range (`outlier_rate`: [LOW, HIGH], the trainer's `--outlier-rate`; the trainer's default 0.5-0.5 without)."""
+    """The part of the schedule the run is in: its point budget (`max_points`), optional training outlier-rate
+    range (`outlier_rate`: [LOW, HIGH], the trainer's `--outlier-rate`; the trainer's default 0.5-0.5 without) and
+    optional caps of its data (`data_capacity`: the localizer capacity whose caps the samples get; 1024 without)."""
     for part in schedule:
         if "until_samples" not in part or samples < part["until_samples"]:
             return part
@@ -104,9 +108,10 @@ def part_for(schedule: list, samples: int) -> dict:
 
 
 def budget_cell(part: dict) -> str:
-    """The log's "points" cell: the point budget and a non-default outlier-rate range."""
-    rate = part.get("outlier_rate")
-    return f"{part['max_points']}" + (f", outliers {rate[0]:g}-{rate[1]:g}" if rate else "")
+    """The log's "points" cell: the point budget, a non-default outlier-rate range and data caps."""
+    rate, caps = part.get("outlier_rate"), part.get("data_capacity")
+    return (f"{part['max_points']}" + (f", outliers {rate[0]:g}-{rate[1]:g}" if rate else "")
+            + (f", caps {caps}" if caps else ""))  # fmt: skip
 
 
 def train(spec: dict, state_path: Path, files: list, val: Path, out: Path, minutes: float, part: dict,
@@ -178,7 +183,7 @@ def main(argv=None) -> None:
     points = part["max_points"]
     print(f"{args.run}: stage {stage}, {counters['samples']} samples so far, {points} points per set", flush=True)
 
-    files = write_data(sim, data, work, stage, spec)
+    files = write_data(sim, data, work, stage, spec, part)
     val = validation_data(sim, data, cache)
     cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.monotonic()

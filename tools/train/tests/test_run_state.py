@@ -56,3 +56,4 @@ def test_schedule_gives_the_point_budget_and_outlier_rate_of_the_run_part():
     assert stage.part_for([{"max_points": 256}], 10**9)["max_points"] == 256
     assert stage.budget_cell(stage.part_for(schedule, 0)) == "256"
     assert stage.budget_cell(stage.part_for(schedule, 1000)) == "1024, outliers 0.5-0.9"
+    assert stage.budget_cell({"max_points": 256, "data_capacity": 256}) == "256, caps 256"
