@@ -6,7 +6,9 @@ this scales better than intra-op threads, whose per-operation synchronisation is
 matrices and collapses when another process competes for the cores.
 """
 
+import ctypes
 import os
+import signal
 import socket
 import sys
 
@@ -63,7 +65,20 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def _entry(rank: int, fn, args, world: int, port: int) -> None:
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def die_with_parent(parent: int) -> None:
+    """End this worker when the process that spawned it ends (Linux: the kernel's parent-death signal), so that a
+    run stopped by hand leaves no worker training, and writing into its folder, in the background."""
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    if os.getppid() != parent:  # the parent ended before the signal was armed
+        os._exit(1)
+
+
+def _entry(rank: int, fn, args, world: int, port: int, parent: int) -> None:
+    die_with_parent(parent)
     dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=world)
     try:
         fn(args, Group(rank, world))
@@ -82,5 +97,5 @@ def launch(fn, args, world: int):
     if world == 1:
         return fn(args, Group())
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    mp.spawn(_entry, args=(fn, args, world, free_port()), nprocs=world, join=True)
+    mp.spawn(_entry, args=(fn, args, world, free_port(), os.getpid()), nprocs=world, join=True)
     return None

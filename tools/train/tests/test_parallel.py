@@ -1,6 +1,12 @@
 """Data-parallel workers: summed gradients equal the single-process gradient; W=2 runs resume exactly."""
 
 import argparse
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -28,6 +34,45 @@ def batch_gradients(args, group):
         # Biases in front of an InstanceNorm get no gradient in training (they cancel); summed over workers: zero.
         torch.save({n: p.grad if p.grad is not None else torch.zeros_like(p) for n, p in model.named_parameters()},
                    args.out)  # fmt: skip
+
+
+def sleep_in_workers(args, group):
+    """Writes this worker's pid, then idles as a long training step would, deaf to SIGINT: torch's spawn asks for
+    SIGINT at the parent's death, and workers of a stopped stage were seen training on after it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    Path(args.out, f"{group.rank}.pid").write_text(str(os.getpid()))
+    time.sleep(120)
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # A zombie is ended; only its parent (gone here) could reap it.
+    status = Path(f"/proc/{pid}/status")
+    return not (status.exists() and "zombie" in status.read_text())
+
+
+def test_workers_end_with_the_process_that_launched_them(tmp_path):
+    here = Path(__file__).resolve().parent
+    script = (
+        f"import sys, argparse; sys.path[:0] = [{str(here)!r}, {str(here.parent)!r}]\n"
+        "from gomatch_train.parallel import launch\nfrom test_parallel import sleep_in_workers\n"
+        f"launch(sleep_in_workers, argparse.Namespace(out={str(tmp_path)!r}), 2)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", script])
+    pid_files = [tmp_path / "0.pid", tmp_path / "1.pid"]
+    deadline = time.monotonic() + 60
+    while not all(f.exists() and f.read_text() for f in pid_files) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    workers = [int(f.read_text()) for f in pid_files]
+    parent.send_signal(signal.SIGKILL)
+    parent.wait()
+    deadline = time.monotonic() + 20
+    while any(alive(w) for w in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(alive(w) for w in workers), "workers outlived their parent"
 
 
 def test_two_workers_sum_to_the_single_process_gradient(tmp_path):
