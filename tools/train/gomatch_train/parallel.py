@@ -6,7 +6,6 @@ this scales better than intra-op threads, whose per-operation synchronisation is
 matrices and collapses when another process competes for the cores.
 """
 
-import ctypes
 import os
 import signal
 import socket
@@ -65,14 +64,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-PR_SET_PDEATHSIG = 1  # linux/prctl.h
-
-
 def die_with_parent(parent: int) -> None:
-    """End this worker when the process that spawned it ends (Linux: the kernel's parent-death signal), so that a
-    run stopped by hand leaves no worker training, and writing into its folder, in the background."""
-    if sys.platform.startswith("linux"):
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    """End this worker when the process that spawned it ends, so that a run stopped by hand leaves no worker
+    training, and writing into its folder, in the background: the parent-death signal torch's spawn arms (a no-op
+    off Linux) becomes SIGTERM, which ends the process whatever Python is doing, instead of SIGINT."""
+    mp._prctl_pr_set_pdeathsig(signal.SIGTERM)
     if os.getppid() != parent:  # the parent ended before the signal was armed
         os._exit(1)
 

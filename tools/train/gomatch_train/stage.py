@@ -68,8 +68,9 @@ def scene_arguments(data: Path, split: str) -> list:
 
 def write_data(sim: Path, data: Path, work: Path, stage: int, spec: dict, part: dict) -> list:
     """This stage's training files (real scenes, synthetic layouts and collections), written in parallel, with the
-    keypoint and view-point caps of the run part's `data_capacity` (default 1024: `gomatch-sim dataset --capacity`)."""
-    capacity = ["--capacity", str(part.get("data_capacity", 1024))]
+    keypoint and view-point caps of the run part's `data_capacity` (`gomatch-sim dataset --capacity`; its default
+    without)."""
+    capacity = ["--capacity", str(part["data_capacity"])] if "data_capacity" in part else []
     jobs = {
         "real": [*scene_arguments(data, "train"), "--queries-per-scene", str(spec["real_queries_per_scene"]),
                  "--seed", str(stage)],
