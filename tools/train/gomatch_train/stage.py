@@ -70,7 +70,7 @@ def write_data(sim: Path, data: Path, work: Path, stage: int, spec: dict, part: 
     """This stage's training files (real scenes, synthetic layouts and collections), written in parallel, with the
     keypoint and view-point caps of the run part's `data_capacity` (`gomatch-sim dataset --capacity`; its default
     without)."""
-    capacity = ["--capacity", str(part["data_capacity"])] if "data_capacity" in part else []
+    capacity = capacity_arguments(part)
     jobs = {
         "real": [*scene_arguments(data, "train"), "--queries-per-scene", str(spec["real_queries_per_scene"]),
                  "--seed", str(stage)],
@@ -89,12 +89,24 @@ def write_data(sim: Path, data: Path, work: Path, stage: int, spec: dict, part: 
     return [out for _, out in processes]
 
 
-def validation_data(sim: Path, data: Path, cache: Path) -> Path:
-    """The validation scenes' samples (20 queries each, protocol seed 0), written once per run."""
-    out = cache / "val.safetensors"
+def capacity_arguments(part: dict) -> list:
+    """`gomatch-sim dataset` options for the caps of the run part's `data_capacity` (the tool's default without)."""
+    return ["--capacity", str(part["data_capacity"])] if "data_capacity" in part else []
+
+
+def validation_file(cache: Path, part: dict) -> Path:
+    """Where a run keeps its validation samples with the part's data caps (one file per caps)."""
+    return cache / (f"val-caps{part['data_capacity']}.safetensors" if "data_capacity" in part else "val.safetensors")
+
+
+def validation_data(sim: Path, data: Path, cache: Path, part: dict) -> Path:
+    """The validation scenes' samples (20 queries each, protocol seed 0) with the same caps as the part's training
+    data, so that the trainer's validation and the log's match precision and recall measure the distribution the
+    part trains for; written once per run and caps."""
+    out = validation_file(cache, part)
     if not out.exists():
-        run_command([sim, "dataset", "--output", out, *scene_arguments(data, "val"), "--queries-per-scene", "20"],
-                    cache / "data-val.log")  # fmt: skip
+        run_command([sim, "dataset", "--output", out, *scene_arguments(data, "val"), "--queries-per-scene", "20",
+                     *capacity_arguments(part)], cache / f"data-{out.stem}.log")  # fmt: skip
     return out
 
 
@@ -185,7 +197,7 @@ def main(argv=None) -> None:
     print(f"{args.run}: stage {stage}, {counters['samples']} samples so far, {points} points per set", flush=True)
 
     files = write_data(sim, data, work, stage, spec, part)
-    val = validation_data(sim, data, cache)
+    val = validation_data(sim, data, cache, part)
     cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.monotonic()
     train(spec, state_path, files, val, work / "train", args.minutes, part, stage)

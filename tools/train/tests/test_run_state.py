@@ -57,3 +57,11 @@ def test_schedule_gives_the_point_budget_and_outlier_rate_of_the_run_part():
     assert stage.budget_cell(stage.part_for(schedule, 0)) == "256"
     assert stage.budget_cell(stage.part_for(schedule, 1000)) == "1024, outliers 0.5-0.9"
     assert stage.budget_cell({"max_points": 256, "data_capacity": 256}) == "256, caps 256"
+
+
+def test_validation_samples_have_the_caps_of_the_training_data(tmp_path):
+    capped, uncapped = {"max_points": 256, "data_capacity": 256}, {"max_points": 256}
+    assert stage.capacity_arguments(capped) == ["--capacity", "256"]
+    assert stage.capacity_arguments(uncapped) == []
+    assert stage.validation_file(tmp_path, capped) != stage.validation_file(tmp_path, uncapped)
+    assert stage.validation_file(tmp_path, uncapped) == tmp_path / "val.safetensors"
