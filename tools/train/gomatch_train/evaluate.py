@@ -4,7 +4,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .loss import classifier_labels, classifier_loss, match_loss
+from .loss import classifier_labels, classifier_loss, distillation_loss, match_loss
 from .model import MatchResult
 
 
@@ -17,11 +17,12 @@ class SampleOutcome:
     gt_matches: int
     kept: int  # proposed matches with classifier probability > threshold
     kept_correct: int
+    distill_loss: torch.Tensor | float = 0.0  # weighted distillation term (`--teacher`), 0 without a teacher
 
     @property
     def loss(self) -> torch.Tensor:
-        """Paper sec. 4.2: L_total = L_match + L_or."""
-        return self.match_loss + self.cls_loss
+        """Paper sec. 4.2: L_total = L_match + L_or (+ the weighted distillation term with a teacher)."""
+        return self.match_loss + self.cls_loss + self.distill_loss
 
 
 def assess(result: MatchResult, match: torch.Tensor, threshold: float) -> SampleOutcome:
@@ -29,18 +30,26 @@ def assess(result: MatchResult, match: torch.Tensor, threshold: float) -> Sample
     return assess_batch(result, match, threshold)[0]
 
 
-def assess_batch(result: MatchResult, match: torch.Tensor, threshold: float) -> list:
-    """`assess` for every sample of a batched result (`GoMatch.forward_batch`) and GT (B, N2); one sync."""
+def assess_batch(
+    result: MatchResult, match: torch.Tensor, threshold: float, teacher: MatchResult | None = None, weight: float = 0.0
+) -> list:
+    """`assess` for every sample of a batched result (`GoMatch.forward_batch`) and GT (B, N2); one sync. With a
+    `teacher`'s result on the same samples, each outcome adds `weight` x the distillation loss."""
     labels = classifier_labels(result.i3d, result.i2d, match) * result.valid
     kept = (result.match_probs.detach() > threshold) & result.valid
     match_losses = match_loss(result.log_plan, match).reshape(-1)
     cls_losses = classifier_loss(result.cls_logits, labels, result.valid).reshape(-1)
+    distill_losses = (
+        weight * distillation_loss(result.log_plan, teacher.log_plan).reshape(-1)
+        if teacher is not None
+        else [0.0] * len(match_losses)
+    )
     counts = torch.stack(
         [result.valid.sum(-1), labels.sum(-1), (match >= 0).sum(-1), kept.sum(-1), (kept & (labels > 0)).sum(-1)],
         dim=-1,
     )
     return [
-        SampleOutcome(match_losses[b], cls_losses[b], *(int(c) for c in sample_counts))
+        SampleOutcome(match_losses[b], cls_losses[b], *(int(c) for c in sample_counts), distill_losses[b])
         for b, sample_counts in enumerate(counts.reshape(-1, 5).tolist())
     ]
 
@@ -56,6 +65,7 @@ class Totals:
     samples: int = 0
     match_loss: float = 0.0
     cls_loss: float = 0.0
+    distill_loss: float = 0.0
     counts: dict = field(
         default_factory=lambda: dict(proposed=0, proposed_correct=0, gt_matches=0, kept=0, kept_correct=0)
     )
@@ -64,6 +74,7 @@ class Totals:
         self.samples += 1
         self.match_loss += outcome.match_loss.item()
         self.cls_loss += outcome.cls_loss.item()
+        self.distill_loss += torch.as_tensor(outcome.distill_loss).item()
         for key in self.counts:
             self.counts[key] += getattr(outcome, key)
 
@@ -71,19 +82,20 @@ class Totals:
         self.samples += other.samples
         self.match_loss += other.match_loss
         self.cls_loss += other.cls_loss
+        self.distill_loss += other.distill_loss
         for key in self.counts:
             self.counts[key] += other.counts[key]
 
     def to_tensor(self) -> torch.Tensor:
-        values = [self.samples, self.match_loss, self.cls_loss] + [self.counts[k] for k in self.counts]
+        values = [self.samples, self.match_loss, self.cls_loss, self.distill_loss] + [self.counts[k] for k in self.counts]
         return torch.tensor(values, dtype=torch.float64)
 
     @classmethod
     def from_tensor(cls, t: torch.Tensor) -> "Totals":
         totals = cls()
         values = t.tolist()
-        totals.samples, totals.match_loss, totals.cls_loss = int(values[0]), values[1], values[2]
-        for key, value in zip(totals.counts, values[3:]):
+        totals.samples, totals.match_loss, totals.cls_loss, totals.distill_loss = int(values[0]), *values[1:4]
+        for key, value in zip(totals.counts, values[4:]):
             totals.counts[key] = int(value)
         return totals
 
@@ -95,6 +107,7 @@ class Totals:
             "loss": (self.match_loss + self.cls_loss) / n,
             "match_loss": self.match_loss / n,
             "cls_loss": self.cls_loss / n,
+            "distill_loss": self.distill_loss / n,
             "match_precision": ratio(c["proposed_correct"], c["proposed"]),
             "match_recall": ratio(c["proposed_correct"], c["gt_matches"]),
             "cls_precision": ratio(c["kept_correct"], c["kept"]),

@@ -43,3 +43,20 @@ def classifier_loss(logits: torch.Tensor, labels: torch.Tensor, valid: torch.Ten
     bce = F.binary_cross_entropy_with_logits(logits, labels, reduction="none")
     loss = (weights * bce).sum(dim=-1, keepdim=True) / count.clamp_min(1.0)
     return torch.where(positives > 0, loss, 0.0 * loss).squeeze(-1)
+
+
+def distillation_loss(log_plan: torch.Tensor, teacher_log_plan: torch.Tensor) -> torch.Tensor:
+    """Knowledge distillation of a teacher's assignment (Hinton et al. 2015, on the Sinkhorn plan of sec. 3.3):
+    each keypoint's distribution over the 3D points and the dustbin (a plan column, normalised) and each 3D
+    point's over the keypoints and the dustbin (a row) should be the teacher's; the mean Kullback-Leibler
+    divergence KL(teacher || student) over those N2 + N3 distributions, per sample of a batch of (B, N3+1, N2+1)
+    plans. Zero when the plans agree; the teacher's soft plan carries the near misses a one-hot GT lacks."""
+    teacher = teacher_log_plan.detach()
+
+    def divergence(student: torch.Tensor, target: torch.Tensor, dim: int) -> torch.Tensor:
+        target = target.log_softmax(dim)
+        return (target.exp() * (target - student.log_softmax(dim))).sum(dim)
+
+    columns = divergence(log_plan[..., :-1], teacher[..., :-1], -2)
+    rows = divergence(log_plan[..., :-1, :], teacher[..., :-1, :], -1)
+    return (columns.sum(-1) + rows.sum(-1)) / (columns.shape[-1] + rows.shape[-1])

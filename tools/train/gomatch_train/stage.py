@@ -3,7 +3,8 @@
 A run lives in `tools/train/stages/RUN/`, committed with the repository:
     run.json   what the run trains: model size, learning rate, batch, the point budget per part of the run
                (`schedule`), the data of each stage (real training scenes and synthetic scenes), an optional
-               export to start from (`init`)
+               export to start from (`init`) and an optional export to distil (`teacher`, `distill_weight`:
+               the trainer's `--teacher`, `--distill-weight`)
     state.pt   weights and Adam state after the last stage (run_state.py, ~6 bytes a parameter)
     log.md     one row per stage: samples so far, CPU minutes, samples/s, training loss, validation matching
                and pose accuracy per validation scene at N = 1024 and N = 256 (int8 blob, k = 10)
@@ -138,6 +139,8 @@ def train(spec: dict, state_path: Path, files: list, val: Path, out: Path, minut
         "--log-every", "50", "--seed", str(stage), "--workers", "2", "--threads", "1", "--compile",
         *spec.get("trainer_options", []),
     ]  # fmt: skip
+    if spec.get("teacher"):
+        command += ["--teacher", REPO / spec["teacher"], "--distill-weight", str(spec.get("distill_weight", 1.0))]
     if "outlier_rate" in part:
         command += ["--outlier-rate", *(str(r) for r in part["outlier_rate"])]
     if os.environ.get("DEVICE", "cpu") == "cuda":

@@ -44,6 +44,7 @@ CHECKPOINT = "checkpoint.pt"
 FIXED_ON_RESUME = (
     "train", "val", "seed", "batch", "lr", "max_points", "min_points", "outlier_rate", "val_max_points",
     "feature_dim", "encoder_blocks", "classifier_blocks", "heads", "sinkhorn_iters", "init", "continue_from", "batched",
+    "teacher", "distill_weight",
 )  # fmt: skip
 NO_OUTLIER_CONTROL = (0.0, 1.0)  # outlier-rate range that keeps every point (the paper's tests)
 VAL_MIN_POINTS = 10  # reference: evaluation counts a sample as failed below 10 points; no other filtering
@@ -84,6 +85,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="start a new run from the weights of this export (a fine-tuning stage; same configuration)")
     p.add_argument("--continue", dest="continue_from", default=None, metavar="STATE",
                    help="start from a staged run's state (run_state.py: weights and Adam state) on new data")
+    p.add_argument("--teacher", default=None, metavar="MODEL",
+                   help="export of a trained model whose Sinkhorn plans the run distils (loss.distillation_loss)")
+    p.add_argument("--distill-weight", type=float, default=1.0, help="weight of the distillation loss (--teacher)")
     p.add_argument("--max-minutes", type=float, default=None, help="checkpoint and stop after this wall time")
     p.add_argument("--max-steps", type=int, default=None, help="checkpoint and stop after this many optimizer steps")
     p.add_argument("--ckpt-minutes", type=float, default=10.0, help="checkpoint interval within an epoch")
@@ -219,6 +223,13 @@ def atomic_export(model: GoMatch, path: str) -> None:
     os.replace(tmp, path)
 
 
+def load_teacher(path: str, device) -> GoMatch:
+    """A frozen model to distil (`--teacher`): any configuration, in inference mode."""
+    teacher = load_export(path).to(device).eval()
+    teacher.requires_grad_(False)
+    return teacher
+
+
 class Run:
     """Model, optimizer and position of one training run, with checkpointing."""
 
@@ -238,6 +249,7 @@ class Run:
         self.model = GoMatch(model_config(args)).to(self.device)
         if args.init is not None:
             self.start_from(args.init)
+        self.teacher = load_teacher(args.teacher, self.device) if args.teacher is not None else None
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=args.lr, fused=True)
         self.samples = 0  # samples trained on in this run
         self.totals = Totals()  # training losses and counts of this process since the run (or resume) started
@@ -330,7 +342,11 @@ class Run:
         threshold = self.model.config.match_threshold
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.args.bf16):
             result = self.model.forward_batch(pts2d, pts3d)
-        return assess_batch(result, match, threshold)
+            if self.teacher is None:
+                return assess_batch(result, match, threshold)
+            with torch.no_grad():
+                taught = self.teacher.forward_batch(pts2d, pts3d)
+        return assess_batch(result, match, threshold, taught, self.args.distill_weight)
 
 
 def train(args, group: Group = Group()) -> dict:
@@ -390,8 +406,9 @@ def train(args, group: Group = Group()) -> dict:
             if run.step % args.log_every == 0 or run.next_batch == len(batches):
                 window = Totals.from_tensor(group.sum_(window.to_tensor()))
                 s = window.summary()
+                distilled = f", distil {s['distill_loss']:.4f}" if args.teacher else ""
                 log(f"epoch {run.epoch} batch {run.next_batch}/{len(batches)} step {run.step}: "
-                    f"loss {s['loss']:.4f} (match {s['match_loss']:.4f}, cls {s['cls_loss']:.4f}) "
+                    f"loss {s['loss']:.4f} (match {s['match_loss']:.4f}, cls {s['cls_loss']:.4f}{distilled}) "
                     f"match P/R {s['match_precision']:.3f}/{s['match_recall']:.3f} "
                     f"{window.samples / max(now - window_start, 1e-9):.2f} samples/s, "
                     f"{(now - start) / 60:.1f} min, {time.process_time() / 60:.1f} CPU min")  # fmt: skip

@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from gomatch_train.loss import classifier_labels, classifier_loss, match_loss
+from gomatch_train.loss import classifier_labels, classifier_loss, distillation_loss, match_loss
 from gomatch_train.sinkhorn import log_sinkhorn, marginals, mutual_assignment, scaling_sinkhorn, transport
 
 
@@ -114,3 +114,14 @@ def test_transport_uses_the_reference_arithmetic_without_autograd_and_for_wide_c
     wide[-1, -1] = 9.0  # (max - min) / eps > 80: exp(-cost / eps) would underflow
     assert torch.equal(transport(wide, mu, nu, 0.1, 20)[0], log_sinkhorn(wide, mu, nu, 0.1, 20)[0])
     assert not torch.equal(transport(cost, mu, nu, 0.1, 20)[0], log_sinkhorn(cost, mu, nu, 0.1, 20)[0])
+
+
+def test_distillation_loss_is_zero_for_the_teachers_own_plan_and_positive_otherwise():
+    torch.manual_seed(0)
+    teacher = torch.randn(2, 6, 9).log_softmax(-1)
+    student = torch.randn(2, 6, 9, requires_grad=True)
+    assert torch.allclose(distillation_loss(teacher, teacher), torch.zeros(2), atol=1e-6)
+    loss = distillation_loss(student, teacher)
+    assert loss.shape == (2,) and (loss > 0).all()
+    loss.sum().backward()
+    assert student.grad.abs().sum() > 0

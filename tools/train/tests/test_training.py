@@ -197,3 +197,23 @@ def test_batched_cli_trains_and_resumes_exactly(data, tmp_path, capsys):
     assert all(torch.equal(a[k], b[k]) for k in a), "resumed batched run diverged from the uninterrupted run"
     with pytest.raises(SystemExit, match="--batched"):
         train.main(cli(data, resumed, "--resume"))
+
+
+def test_a_teacher_adds_the_distillation_loss_and_resumes_only_with_the_same_teacher(data, tmp_path, capsys):
+    first = tmp_path / "first"
+    train.main(cli(data, first, "--epochs", "1"))
+    teacher = str(first / "last.safetensors")
+    run = train.Run(train.parse_args(cli(data, tmp_path / "own", "--init", teacher, "--teacher", teacher)))
+    outcome = run.assess_chunk([run_sample(data)])[0]
+    assert abs(outcome.distill_loss.item()) < 1e-5, "a model distilling itself has nothing to learn"
+    student = tmp_path / "student"
+    train.main(cli(data, student, "--teacher", teacher, "--distill-weight", "2", "--epochs", "1"))
+    assert "distil" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="options differ"):
+        train.main(cli(data, student, "--resume", "--epochs", "2"))
+
+
+def run_sample(data):
+    """One training sample as the trainer prepares it."""
+    sample = load_samples(str(data / "train.safetensors"))[0]
+    return train.epoch_samples([sample], 0, train.parse_args(cli(data, "unused")))[0]
