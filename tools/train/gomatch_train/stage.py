@@ -3,8 +3,9 @@
 A run lives in `tools/train/stages/RUN/`, committed with the repository:
     run.json   what the run trains: model size, learning rate, batch, the point budget per part of the run
                (`schedule`), the data of each stage (real training scenes and synthetic scenes), an optional
-               export to start from (`init`) and an optional export to distil (`teacher`, `distill_weight`:
-               the trainer's `--teacher`, `--distill-weight`)
+               model to start from (`init`) and an optional model to distil (`teacher`, `distill_weight`: the
+               trainer's `--teacher`, `--distill-weight`); each an export or another run's folder (the weights
+               of its committed state)
     state.pt   weights and Adam state after the last stage (run_state.py, ~6 bytes a parameter)
     log.md     one row per stage: samples so far, CPU minutes, samples/s, training loss, validation matching
                and pose accuracy per validation scene at N = 1024 and N = 256 (int8 blob, k = 10)
@@ -33,6 +34,9 @@ from pathlib import Path
 import torch
 
 from . import run_state
+from .config import ModelConfig
+from .export import save_export
+from .model import GoMatch
 
 HERE = Path(__file__).resolve().parents[1]  # tools/train
 REPO = HERE.parents[1]
@@ -128,6 +132,19 @@ def budget_cell(part: dict) -> str:
             + (f", caps {caps}" if caps else ""))  # fmt: skip
 
 
+def export_of(source: str, out: Path) -> Path:
+    """The export a run's `init` or `teacher` names: a safetensors file of the repository, or a run folder
+    (tools/train/stages/RUN), whose committed state's weights are exported to `out`."""
+    path = REPO / source
+    if not path.is_dir():
+        return path
+    state = run_state.load(str(path / "state.pt"))
+    model = GoMatch(ModelConfig.from_json(state["config"]))
+    model.load_state_dict(run_state.unpack(state)[0])
+    save_export(model, str(out))
+    return out
+
+
 def train(spec: dict, state_path: Path, files: list, val: Path, out: Path, minutes: float, part: dict,
           stage: int) -> None:  # fmt: skip
     command = [
@@ -140,7 +157,8 @@ def train(spec: dict, state_path: Path, files: list, val: Path, out: Path, minut
         *spec.get("trainer_options", []),
     ]  # fmt: skip
     if spec.get("teacher"):
-        command += ["--teacher", REPO / spec["teacher"], "--distill-weight", str(spec.get("distill_weight", 1.0))]
+        teacher = export_of(spec["teacher"], out.parent / "teacher.safetensors")
+        command += ["--teacher", teacher, "--distill-weight", str(spec.get("distill_weight", 1.0))]
     if "outlier_rate" in part:
         command += ["--outlier-rate", *(str(r) for r in part["outlier_rate"])]
     if os.environ.get("DEVICE", "cpu") == "cuda":
@@ -149,7 +167,7 @@ def train(spec: dict, state_path: Path, files: list, val: Path, out: Path, minut
     if state_path.exists():
         command += ["--continue", state_path]
     elif spec.get("init"):
-        command += ["--init", REPO / spec["init"]]
+        command += ["--init", export_of(spec["init"], out.parent / "init.safetensors")]
     run_command(command, out.parent / "train.log", cwd=HERE)
 
 

@@ -5,6 +5,7 @@ import json
 import torch
 
 from gomatch_train import run_state, stage, train
+from gomatch_train.export import load_export
 from test_training import cli
 
 
@@ -65,3 +66,16 @@ def test_validation_samples_have_the_caps_of_the_training_data(tmp_path):
     assert stage.capacity_arguments(uncapped) == []
     assert stage.validation_file(tmp_path, capped) != stage.validation_file(tmp_path, uncapped)
     assert stage.validation_file(tmp_path, uncapped) == tmp_path / "val.safetensors"
+
+
+def test_a_run_folder_names_the_weights_of_its_committed_state(data, tmp_path):
+    train.main(cli(data, tmp_path / "run", "--epochs", "1"))
+    checkpoint = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    folder = tmp_path / "stages" / "other"
+    folder.mkdir(parents=True)
+    run_state.save(run_state.pack(checkpoint, {"samples": 6, "cpu_minutes": 0.0, "stages": 1}), str(folder / "state.pt"))
+    exported = stage.export_of(str(folder), tmp_path / "weights.safetensors")
+    model = load_export(str(exported))
+    assert all(torch.equal(t, checkpoint["model"][name]) for name, t in model.state_dict().items())
+    file = tmp_path / "run" / "last.safetensors"
+    assert stage.export_of(str(file), tmp_path / "unused.safetensors") == file
