@@ -16,6 +16,9 @@ import os
 
 import torch
 
+from .config import ModelConfig
+from .model import GoMatch
+
 BLOCK = 256
 FORMAT = "gomatch-run-state/1"
 
@@ -89,6 +92,18 @@ def unpack(state: dict) -> tuple:
             "exp_avg_sq": dequantize_log(m["sqrt_exp_avg_sq"]).square(),
         }
     return state["model"], {"state": optimizer_state, "param_groups": state["param_groups"]}, state["counters"]
+
+
+def config_of(state: dict) -> ModelConfig:
+    """The model configuration of a packed state."""
+    return ModelConfig.from_json(state["config"])
+
+
+def model_of(state: dict) -> GoMatch:
+    """The model a packed state holds: its configuration with its weights."""
+    model = GoMatch(config_of(state))
+    model.load_state_dict(state["model"])
+    return model
 
 
 def save(state: dict, path: str) -> None:

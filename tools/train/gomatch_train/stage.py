@@ -34,9 +34,7 @@ from pathlib import Path
 import torch
 
 from . import run_state
-from .config import ModelConfig
 from .export import save_export
-from .model import GoMatch
 
 HERE = Path(__file__).resolve().parents[1]  # tools/train
 REPO = HERE.parents[1]
@@ -138,10 +136,7 @@ def export_of(source: str, out: Path) -> Path:
     path = REPO / source
     if not path.is_dir():
         return path
-    state = run_state.load(str(path / "state.pt"))
-    model = GoMatch(ModelConfig.from_json(state["config"]))
-    model.load_state_dict(run_state.unpack(state)[0])
-    save_export(model, str(out))
+    save_export(run_state.model_of(run_state.load(str(path / "state.pt"))), str(out))
     return out
 
 

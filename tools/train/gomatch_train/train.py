@@ -258,8 +258,9 @@ class Run:
 
     def continue_from(self, path: str) -> None:
         """Weights and Adam state of a staged run (`run_state.py`), whose configuration must be this run's."""
-        weights, optimizer_state, _ = run_state.unpack(run_state.load(path))
-        config = ModelConfig.from_json(run_state.load(path)["config"])
+        state = run_state.load(path)
+        weights, optimizer_state, _ = run_state.unpack(state)
+        config = run_state.config_of(state)
         if config != self.model.config:
             raise SystemExit(f"--continue {path}: configuration {config.to_json()} differs from this run's "
                              f"{self.model.config.to_json()}")  # fmt: skip
