@@ -8,59 +8,59 @@ pub(super) type FittedRule = (f32, [f32; 9], f32);
 /// (max_wrong, min_confidence, recall) of each operating point.
 pub(super) type FittedPoints = [(f32, f32, f32); 4];
 
-/// Fitted at N = 128 on 66 training scenes: 6 of 407 accepted wrong (1.5 %), recall 83.7 % (401 of 479);
-/// validation: 162 of 257 accepted wrong (63.0 %), recall 86.4 % (95 of 110).
+/// Fitted at N = 128 on 66 training scenes: 7 of 468 accepted wrong (1.5 %), recall 86.2 % (461 of 535);
+/// validation: 214 of 327 accepted wrong (65.4 %), recall 84.3 % (113 of 134).
 pub(super) const RULE_128: FittedRule = (
-    -8.803386,
+    -7.5879183,
     [
-        1.8668717, 1.432722, 12.344821, 1.3665212, 6.48301, 0.1909943, 7.4372773, 2.984233,
-        -3.728528,
+        1.9181302, 1.050459, 10.529673, 2.0928752, 3.4009705, 0.05158207, 8.634264, 3.226965,
+        -4.182492,
     ],
-    0.6439986,
+    0.60658467,
 );
 
 /// The operating points of [`RULE_128`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_128: FittedPoints = [
-    (0.005, 0.89771396, 0.6764092),
-    (0.01, 0.8105916, 0.76409185),
-    (0.02, 0.60013145, 0.8643006),
-    (0.05, 0.45616886, 0.9227557),
+    (0.005, 0.68968385, 0.835514),
+    (0.01, 0.6510001, 0.85233647),
+    (0.02, 0.5686596, 0.87476635),
+    (0.05, 0.47326443, 0.9084112),
 ];
 
-/// Fitted at N = 256 on 66 training scenes: 7 of 501 accepted wrong (1.4 %), recall 88.4 % (494 of 559);
-/// validation: 225 of 409 accepted wrong (55.0 %), recall 85.6 % (184 of 215).
+/// Fitted at N = 256 on 66 training scenes: 8 of 597 accepted wrong (1.3 %), recall 89.4 % (589 of 659);
+/// validation: 178 of 436 accepted wrong (40.8 %), recall 88.7 % (258 of 291).
 pub(super) const RULE_256: FittedRule = (
-    -9.672822,
+    -7.7632494,
     [
-        1.4956995, 1.0001861, 8.617315, 3.378216, 4.8496037, 0.20206235, 9.001601, 4.416845,
-        -3.4258006,
+        1.4658872, 0.9493784, 7.511603, 2.975867, 4.6501117, 0.09847871, 9.693624, 3.049834,
+        -3.8112195,
     ],
-    0.6494284,
+    0.63333356,
 );
 
 /// The operating points of [`RULE_256`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_256: FittedPoints = [
-    (0.005, 0.812477, 0.7978533),
-    (0.01, 0.73933315, 0.8515206),
-    (0.02, 0.6191401, 0.8908766),
-    (0.05, 0.44327065, 0.94454384),
+    (0.005, 0.7169837, 0.8558422),
+    (0.01, 0.67841715, 0.86949927),
+    (0.02, 0.6220422, 0.8998483),
+    (0.05, 0.49619693, 0.94537175),
 ];
 
-/// Fitted at N = 1024 on 66 training scenes: 8 of 553 accepted wrong (1.4 %), recall 85.4 % (545 of 638);
-/// validation: 2 of 478 accepted wrong (0.4 %), recall 89.3 % (476 of 533).
+/// Fitted at N = 1024 on 66 training scenes: 9 of 654 accepted wrong (1.4 %), recall 88.5 % (645 of 729);
+/// validation: 0 of 500 accepted wrong (0.0 %), recall 91.7 % (500 of 545).
 pub(super) const RULE_1024: FittedRule = (
-    -8.766651,
+    -9.468917,
     [
-        1.389538, 0.57464725, 6.4419494, 3.7431402, 4.3069873, 0.18503046, 5.2964516, 3.173614,
-        -3.6101875,
+        1.2739443, 0.79850495, 5.608523, 3.1812928, 6.3527565, 0.17016186, 7.2954087, 3.6885998,
+        -3.4711845,
     ],
-    0.75174564,
+    0.7396278,
 );
 
 /// The operating points of [`RULE_1024`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_1024: FittedPoints = [
-    (0.005, 0.9999238, 0.123824455),
-    (0.01, 0.7725276, 0.8448276),
-    (0.02, 0.72431326, 0.86206895),
-    (0.05, 0.50581414, 0.9451411),
+    (0.005, 0.8338441, 0.824417),
+    (0.01, 0.7754612, 0.8628258),
+    (0.02, 0.6506962, 0.9080933),
+    (0.05, 0.45439777, 0.9643347),
 ];
