@@ -138,7 +138,7 @@ fn model_counts_match_the_data_readme() {
     }
 }
 
-/// The scenes added on 2026-12-01 (`shared/data/README.md`): path, format, images and 3D
+/// The 45 scenes of `shared/data/README.md`'s section "45 more real scenes": path, format, images and 3D
 /// points as the README lists them, and the observations (track elements) this project's
 /// readers find, every link checked both ways by `Scene::validate`.
 const ADDED_SCENES: [(&str, &str, usize, usize, usize); 45] = [
