@@ -6,8 +6,9 @@
 Two markdown tables of pooled match precision / recall (the mutual assignment's matches, as `validate` counts them):
 - by viewpoint change, at every sample's own outlier rate: the median angle between a GT match's query bearing and
   its 3D point's bearing in the view's frame (relative rotation and parallax together);
-- per scene (synthetic scenes pooled by kind), at the samples' own outlier rate and at each controlled keypoint
-  outlier rate of `--rates` (the trainer's `--outlier-rate R R`: outliers or inliers dropped to reach R).
+- per scene (synthetic scenes pooled by kind), with the median viewpoint change and the mean share of keypoints
+  with a match (before the caps of `--max-points`), at the samples' own outlier rate and at each controlled
+  keypoint outlier rate of `--rates` (the trainer's `--outlier-rate R R`: outliers or inliers dropped to reach R).
 `--rotate DEG` first turns every view's bearings by DEG degrees about a random axis (points then behind the camera
 are dropped): what a rotation alone, without parallax, costs. `--scene` keeps one scene's samples, `--limit N` N
 samples drawn at random.
@@ -109,11 +110,17 @@ def rate_table(model, samples: list, seed: int, max_points: int, rates: list) ->
     columns = [("own", tuple(NO_OUTLIER_CONTROL))] + [(f"{r:g}", (r, r)) for r in rates]
     results = [totals_by(model, samples, keys, seed, max_points, rate) for _, rate in columns]
     header = " | ".join(f"match P / R, outlier rate {label}" for label, _ in columns)
-    rows = [f"| scene | samples | {header} |", "|---" * (2 + len(columns)) + "|"]
+    rows = [
+        f"| scene | samples | median viewpoint change (deg) | keypoints with a match | {header} |",
+        "|---" * (4 + len(columns)) + "|",
+    ]
     for key in sorted(set(keys)) + ["all"]:
         if key in results[0]:
+            mine = [s for s, k in zip(samples, keys) if key in (k, "all")]
+            change = np.nanmedian([viewpoint_change(s) for s in mine])
+            matched = np.mean([(s.match >= 0).mean() for s in mine])
             cells = " | ".join(cell(r.get(key)) for r in results)
-            rows.append(f"| {key} | {results[0][key].samples} | {cells} |")
+            rows.append(f"| {key} | {results[0][key].samples} | {change:.1f} | {matched:.3f} | {cells} |")
     return "\n".join(rows)
 
 
