@@ -20,11 +20,12 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from .dataset import Sample, load_samples, subsample
+from .dataset import Sample, load_samples
 from .evaluate import Totals, assess
 from .export import load_export
 from .runtime import configure_cpu
-from .train import NO_OUTLIER_CONTROL, VAL_MIN_POINTS, to_tensors
+from .synthetic import rotation
+from .train import NO_OUTLIER_CONTROL, to_tensors, validation_draw
 
 ANGLE_BINS = (0, 2, 5, 10, 20, 40, 180)
 MIN_DEPTH = 0.2  # a rotated bearing with z below this is behind (or grazing) the turned camera
@@ -45,17 +46,10 @@ def unit_bearings(plane: np.ndarray) -> np.ndarray:
     return rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
 
-def rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
-    """Rodrigues' formula."""
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    angle = np.radians(degrees)
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
-
-
 def rotated_view(sample: Sample, degrees: float, rng: np.random.Generator) -> Sample:
     """The sample with its view's camera turned by `degrees` about a random axis through its centre."""
     axis = rng.normal(size=3)
-    turn = rotation(axis / np.linalg.norm(axis), degrees)
+    turn = rotation(axis / np.linalg.norm(axis) * np.radians(degrees))
     rays = np.column_stack([sample.pts3d, np.ones(len(sample.pts3d))]) @ turn.T
     kept = rays[:, 2] > MIN_DEPTH
     new_index = np.full(len(rays), -1)
@@ -76,7 +70,7 @@ def totals_by(model, samples: list, keys: list, seed: int, max_points: int, rate
     """Totals per key (and "all") over the samples, each drawn as `train.validation_set` draws it."""
     groups = {}
     for index, (sample, key) in enumerate(zip(samples, keys)):
-        drawn = subsample(sample, np.random.default_rng([seed, 1_000_003, index]), rate, max_points, VAL_MIN_POINTS)
+        drawn = validation_draw(sample, index, seed, max_points, rate)
         if drawn is None:
             continue
         pts2d, pts3d, match = to_tensors(drawn, "cpu")

@@ -183,11 +183,16 @@ def validation_set(
     for index, sample in enumerate(samples):
         if scene is not None and not sample.name.startswith(scene + "/"):
             continue
-        rng = np.random.default_rng([seed, 1_000_003, index])
-        drawn = subsample(sample, rng, tuple(outlier_rate), max_points, VAL_MIN_POINTS)
+        drawn = validation_draw(sample, index, seed, max_points, outlier_rate)
         if drawn is not None:
             prepared.append(drawn)
     return prepared
+
+
+def validation_draw(sample, index: int, seed: int, max_points: int, outlier_rate=NO_OUTLIER_CONTROL):
+    """The validation subsample of the `index`-th sample of a file (the same for every run with `seed`), or None."""
+    rng = np.random.default_rng([seed, 1_000_003, index])
+    return subsample(sample, rng, tuple(outlier_rate), max_points, VAL_MIN_POINTS)
 
 
 @torch.no_grad()
