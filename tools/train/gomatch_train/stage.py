@@ -41,9 +41,9 @@ REPO = HERE.parents[1]
 VALIDATION = ["colmap/mouse", "colmap/sceaux", "colmap/mamechun", "colmap/softmurata", "opensfm/projcv_cc9d27"]
 SYNTHETIC_SEED_BASE = 1000  # seeds 0-4 are the demo's, the firmware query's and the first GPU runs'
 LOG_HEADER = (
-    "| stage | finished | samples so far | CPU min so far | points | minutes | samples/s | training loss | "
+    "| stage | samples so far | CPU min so far | points | minutes | samples/s | training loss | "
     "val match P / R | AUC @1/5/10 px, N = 1024 (mouse; sceaux; mamechun; softmurata; projcv) | "
-    "AUC @1/5/10 px, N = 256 (same order) |\n|---|---|---|---|---|---|---|---|---|---|---|\n"
+    "AUC @1/5/10 px, N = 256 (same order) |\n|---|---|---|---|---|---|---|---|---|---|\n"
 )
 
 
@@ -233,7 +233,7 @@ def main(argv=None) -> None:
     train_loss = checkpoint["train_totals"].get("loss", float("nan"))
     v = result["validation"]
     row = (
-        f"| {stage} | {time.strftime('%Y-%m-%d %H:%M')} | {counters['samples']:,} | {counters['cpu_minutes']:.0f} | "
+        f"| {stage} | {counters['samples']:,} | {counters['cpu_minutes']:.0f} | "
         f"{budget_cell(part)} | {wall / 60:.0f} | {stage_samples / wall:.1f} | {train_loss:.3f} | "
         f"{v['match_precision']:.3f} / {v['match_recall']:.3f} | {auc_cell(result[1024])} | {auc_cell(result[256])} |\n"
     )  # fmt: skip
