@@ -8,11 +8,12 @@
 //! pixel -> bearing vector ([`camera`]) -> encoder feature ([`encoder`]) -> attention
 //! ([`attention`]) -> Sinkhorn plan and mutual match ([`sinkhorn`]) -> classifier
 //! probability ([`classifier`]) -> RANSAC-PnP inlier ([`p3p`], [`ransac`], [`refine`]) ->
-//! pose of the query ([`pose`]). [`matcher`] runs the network on one query-view pair with
-//! the weights of a [`weights::Model`] blob. The database side is the geometric-only
-//! [`map`]: 3D points, database views and their poses. [`localizer`] runs the whole
-//! pipeline for one query against several views of a map. `link` (cargo feature `link`, on
-//! by default) serves it to a host over a byte stream (COBS-framed postcard messages).
+//! pose of the query ([`pose`]) -> the pose re-matched by projection ([`guided`]).
+//! [`matcher`] runs the network on one query-view pair with the weights of a
+//! [`weights::Model`] blob. The database side is the geometric-only [`map`]: 3D points,
+//! database views and their poses. [`localizer`] runs the whole pipeline for one query
+//! against several views of a map. `link` (cargo feature `link`, on by default) serves it to
+//! a host over a byte stream (COBS-framed postcard messages).
 #![no_std]
 #![deny(unsafe_code)]
 #![warn(missing_docs)]
@@ -27,6 +28,7 @@ pub mod classifier;
 pub mod encoder;
 pub mod envelope;
 pub mod error;
+pub mod guided;
 pub mod limits;
 #[cfg(feature = "link")]
 pub mod link;

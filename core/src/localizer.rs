@@ -24,6 +24,7 @@ use crate::acceptance::{self, AcceptanceRule, Evidence, PoseSupport};
 use crate::camera::Camera;
 pub use crate::error::Failure;
 use crate::error::{Error, Input, Result};
+use crate::guided::{self, GuidedConfig, GuidedCounts, UNPAIRED};
 use crate::limits::MIN_CORRESPONDENCES;
 use crate::map::Map;
 use crate::matcher::Matcher;
@@ -142,6 +143,9 @@ pub struct LocalizerConfig {
     /// trusted ([`Failure::LowConfidence`] when not); `None`: the rule fitted at the
     /// localizer's capacity, [`AcceptanceRule::for_capacity`].
     pub acceptance: Option<AcceptanceRule>,
+    /// Guided re-matching of an accepted pose ([`guided`]); `None`: the pose is RANSAC-PnP's
+    /// on the network's matches, as in the paper.
+    pub guided: Option<GuidedConfig>,
 }
 
 impl Default for LocalizerConfig {
@@ -152,13 +156,15 @@ impl Default for LocalizerConfig {
 
 impl LocalizerConfig {
     /// [`RansacConfig::new`], `min_matches` and `min_inliers` = [`MIN_CORRESPONDENCES`],
-    /// the acceptance rule of the localizer's capacity.
+    /// the acceptance rule of the localizer's capacity, guided re-matching with
+    /// [`GuidedConfig::new`].
     pub const fn new() -> Self {
         Self {
             ransac: RansacConfig::new(),
             min_matches: MIN_CORRESPONDENCES,
             min_inliers: MIN_CORRESPONDENCES,
             acceptance: None,
+            guided: Some(GuidedConfig::new()),
         }
     }
 
@@ -202,7 +208,7 @@ pub struct StageTimings {
     pub match_us: u64,
     /// Merging the views' matches.
     pub merge_us: u64,
-    /// RANSAC-PnP and refinement.
+    /// RANSAC-PnP, refinement and guided re-matching.
     pub pose_us: u64,
     /// The whole call.
     pub total_us: u64,
@@ -228,9 +234,12 @@ pub struct Localization {
     pub evidence: Option<Evidence>,
     /// The acceptance rule's confidence in that pose.
     pub confidence: Option<f32>,
-    /// That pose, accepted or not: for evaluating the acceptance rule only. A refused
-    /// pose ([`Failure::LowConfidence`]) is not a localization.
+    /// That pose, accepted or not, as the rule judged it (before guided re-matching): for
+    /// evaluating the acceptance rule only. A refused pose ([`Failure::LowConfidence`]) is
+    /// not a localization.
     pub candidate: Option<Pose>,
+    /// What guided re-matching did to an accepted pose.
+    pub guided: GuidedCounts,
 }
 
 impl Localization {
@@ -251,6 +260,7 @@ impl Localization {
             evidence: None,
             confidence: None,
             candidate: None,
+            guided: GuidedCounts::default(),
         }
     }
 }
@@ -276,7 +286,9 @@ pub struct Localizer<const N: usize, S: PlanScalar = f32> {
     /// of the last call, by keypoint.
     merged: [Correspondence; N],
     merged_len: usize,
-    /// Pose solver input, parallel to `merged`.
+    /// Pose solver input, parallel to `merged`; during guided re-matching the depth scratch
+    /// of the views' projection rules and per keypoint its nearest point's squared
+    /// distance, then the pairs' input.
     bearings: [[f64; 2]; N],
     points: [[f64; 3]; N],
 }
@@ -323,7 +335,8 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
 
     /// Localizes a query against the map (paper sec. 4.1): encodes the keypoints once,
     /// matches them against each selected view's points as bearing vectors (eq. 1),
-    /// merges the classifier-accepted matches, and estimates the pose with RANSAC-PnP.
+    /// merges the classifier-accepted matches, estimates the pose with RANSAC-PnP, and
+    /// re-matches an accepted pose by projection ([`guided`]).
     ///
     /// Invalid input is an `Err` and nothing runs: a camera with non-finite or
     /// non-positive intrinsics ([`Error::InvalidIntrinsics`]), more keypoints than `N`
@@ -388,6 +401,11 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             let centres = view_centres(map, &selected)?;
             localization.outcome = self.solve(config, query, &centres, &mut localization)?;
         }
+        if let (Ok(pose), Some(guided)) = (localization.outcome, config.guided) {
+            let (refined, counts) = self.guide(map, query, &selected, pose, &guided, config)?;
+            localization.outcome = Ok(refined);
+            localization.guided = counts;
+        }
         let done = now(clock);
         if clock.is_some() {
             localization.timings = Some(StageTimings {
@@ -401,6 +419,114 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         }
         log_summary(&localization, n);
         Ok(localization)
+    }
+
+    /// The rounds of [`guided`]: pairs of each radius, then RANSAC-PnP on them.
+    fn guide(
+        &mut self,
+        map: &Map<'_>,
+        query: &Query<'_>,
+        selected: &[u32],
+        mut pose: Pose,
+        guided: &GuidedConfig,
+        config: &LocalizerConfig,
+    ) -> Result<(Pose, GuidedCounts)> {
+        self.set_query(query)?;
+        let n = query.keypoints.len();
+        let mut counts = GuidedCounts::default();
+        for radius_px in guided.radii_px {
+            self.pair_by_projection(
+                map,
+                selected,
+                &pose,
+                radius_px / query.camera.mean_focal(),
+                n,
+            )?;
+            let pairs = self.pairs_to_solver_input(map, query, n)?;
+            if pairs < guided::MIN_INLIERS {
+                break;
+            }
+            let bearings = self.bearings.get(..pairs).unwrap_or(&[]);
+            let points = self.points.get(..pairs).unwrap_or(&[]);
+            match estimate_pose(bearings, points, &config.ransac, &mut self.pnp) {
+                Ok(estimate) if estimate.inlier_count >= guided::MIN_INLIERS => {
+                    pose = estimate.pose;
+                    counts = GuidedCounts {
+                        rounds: counts.rounds.saturating_add(1),
+                        pairs: u16::try_from(pairs).unwrap_or(u16::MAX),
+                        inliers: u16::try_from(estimate.inlier_count).unwrap_or(u16::MAX),
+                    };
+                }
+                Ok(_) | Err(Error::NoPoseFound | Error::DegenerateConfiguration) => break,
+                Err(other) => return Err(other),
+            }
+        }
+        Ok((pose, counts))
+    }
+
+    /// Steps 1 and 2 of a guided round: per keypoint (bearing in `network_input`, from
+    /// [`Localizer::set_query`]) its mutual nearest point of the views within `radius` in
+    /// `view_points` ([`UNPAIRED`] when none).
+    fn pair_by_projection(
+        &mut self,
+        map: &Map<'_>,
+        selected: &[u32],
+        pose: &Pose,
+        radius: f64,
+        n: usize,
+    ) -> Result<()> {
+        let keypoints = self.network_input.get(..n).unwrap_or(&[]);
+        let best_point = self.view_points.get_mut(..n).unwrap_or(&mut []);
+        let best_distance = self
+            .points
+            .as_flattened_mut()
+            .get_mut(..n)
+            .unwrap_or(&mut []);
+        best_point.fill(UNPAIRED);
+        best_distance.fill(f64::INFINITY);
+        let depths = self
+            .bearings
+            .as_flattened_mut()
+            .get_mut(..N)
+            .unwrap_or(&mut []);
+        for &view in selected {
+            let view_pose = map.view(view as usize)?.pose;
+            // The matcher's points of the view (the same rule), with their positions.
+            let positions = map
+                .view_point_positions(view as usize)?
+                .map(|(index, position)| ((index, position), position));
+            let chosen = view_point_bearings(view_pose, positions, N, depths);
+            let points = chosen.map(|(point, _)| point);
+            guided::nearest_points(pose, points, keypoints, radius, best_point, best_distance);
+        }
+        let position = |index: u32| map.point(index as usize).map(|p| p.map(f64::from));
+        guided::keep_mutual(pose, keypoints, best_point, best_distance, position)
+    }
+
+    /// Fills the pose solver's input with the paired keypoints' `f64` bearings and their
+    /// points, in keypoint order; returns the number of pairs.
+    fn pairs_to_solver_input(
+        &mut self,
+        map: &Map<'_>,
+        query: &Query<'_>,
+        n: usize,
+    ) -> Result<usize> {
+        let mut pairs = 0;
+        for (k, &point) in self.view_points.iter().enumerate().take(n) {
+            if point == UNPAIRED {
+                continue;
+            }
+            let (Some(bearing), Some(position)) =
+                (self.bearings.get_mut(pairs), self.points.get_mut(pairs))
+            else {
+                break;
+            };
+            let pixel = query.keypoints.get(k).copied().unwrap_or([f32::NAN; 2]);
+            *bearing = keypoint_bearing(&query.camera, pixel, k)?;
+            *position = map.point(point as usize)?.map(f64::from);
+            pairs += 1;
+        }
+        Ok(pairs)
     }
 
     /// Checks the camera and keypoints and converts them to bearing vectors for the
@@ -631,6 +757,9 @@ fn check_config(config: &LocalizerConfig) -> Result<()> {
     }
     if let Some(rule) = &config.acceptance {
         rule.check()?;
+    }
+    if let Some(guided) = &config.guided {
+        guided.check()?;
     }
     let ransac = &config.ransac;
     if ransac.max_iterations == 0 {
@@ -1017,6 +1146,65 @@ mod tests {
 
     /// The stages after the network: merging the per-keypoint bests (each 3D point kept
     /// once, at its most probable keypoint) and the pose from the merged correspondences.
+    #[test]
+    fn guided_re_matching_pulls_a_nearby_pose_onto_the_keypoints() {
+        let f = fixture();
+        let map = Map::from_bytes(&f.blob).expect("valid map");
+        let truth = pose(0.1);
+        let kp = keypoints(&f, &truth);
+        let query = Query {
+            keypoints: &kp[..CAP],
+            camera: camera(),
+        };
+        // About 10 px off: less than half the 30 px between neighbouring points.
+        let near = Pose::new(
+            Rotation3::from_euler_angles(0.0, 0.01, 0.0) * truth.rotation,
+            truth.translation + Vector3::new(0.05, -0.05, 0.0),
+        );
+        let config = LocalizerConfig::new();
+        let guided = GuidedConfig::new();
+        let mut l = LOCALIZER.lock().expect("lock");
+        let (refined, counts) = l
+            .guide(&map, &query, &[0, 1], near, &guided, &config)
+            .expect("valid");
+        assert!(near.rotation_error_deg(&truth) > 0.5);
+        assert!(refined.rotation_error_deg(&truth) < 1e-3);
+        assert!(refined.translation_error(&truth) < 1e-4);
+        // Every keypoint pairs with its own point (the views' other 16 points have none).
+        let all = CAP as u16;
+        assert_eq!((counts.rounds, counts.pairs, counts.inliers), (4, all, all));
+        // A pose that puts no point near a keypoint stays as it was.
+        let far = Pose::new(
+            truth.rotation,
+            truth.translation + Vector3::new(3.0, 0.0, 0.0),
+        );
+        let (kept, counts) = l
+            .guide(&map, &query, &[0, 1], far, &guided, &config)
+            .expect("valid");
+        assert_eq!((kept, counts), (far, GuidedCounts::default()));
+    }
+
+    #[test]
+    fn guided_radii_are_checked_with_the_configuration() {
+        let config = LocalizerConfig {
+            guided: Some(GuidedConfig {
+                radii_px: [40.0, 20.0, f64::NAN, 5.0],
+            }),
+            ..LocalizerConfig::new()
+        };
+        assert_eq!(
+            check_config(&config),
+            Err(Error::InvalidConfig {
+                parameter: "guided_radius"
+            })
+        );
+        let off = LocalizerConfig {
+            guided: None,
+            ..config
+        };
+        assert_eq!(check_config(&off), Ok(()));
+    }
+
     #[test]
     fn merged_true_matches_give_the_true_pose() {
         let f = fixture();

@@ -335,10 +335,29 @@ fn acceptance_counts_are_consistent_with_the_queries() {
         );
         if q.failure.is_none() {
             assert!(a.rule.accepts(confidence));
-            assert_eq!(q.rotation_deg, Some(rotation));
-            assert_eq!(q.reprojection_px, q.candidate_reprojection_px);
+            // The reported pose is the judged one re-matched by projection.
+            let guided = q.guided.expect("an accepted pose is re-matched");
+            if guided.rounds == 0 {
+                assert_eq!(q.rotation_deg, Some(rotation));
+                assert_eq!(q.reprojection_px, q.candidate_reprojection_px);
+            } else {
+                assert!(usize::from(guided.inliers) >= gomatch::guided::MIN_INLIERS);
+                assert!(guided.inliers <= guided.pairs);
+            }
+        } else {
+            assert_eq!(q.guided, None);
         }
     }
+    let reported_wrong = report
+        .per_query
+        .iter()
+        .filter(|q| q.failure.is_none())
+        .filter(|q| {
+            !q.rotation_deg
+                .is_some_and(|r| pose_is_right(q.reprojection_px, r))
+        })
+        .count();
+    assert_eq!(a.reported_wrong, Some(reported_wrong));
 
     let refuse_all = AcceptanceRule {
         bias: -100.0,
@@ -370,6 +389,63 @@ fn acceptance_counts_are_consistent_with_the_queries() {
             assert!(failure.starts_with("low confidence"), "{failure}");
         }
     }
+}
+
+/// Guided re-matching (`--no-guided` leaves it out) changes only the reported poses: the
+/// matches, evidence and judged poses are the same, and on the synthetic queries the
+/// re-matched poses are closer to the truth.
+#[test]
+fn guided_re_matching_refines_the_accepted_poses_only() {
+    let Some(matching) = shipped_int8_matching() else {
+        return;
+    };
+    let scene = synthetic_scene(1, 1);
+    let guided = evaluate(&scene, matching, &options(10, 4, 2), false).unwrap();
+    let paper = EvalOptions {
+        localizer: LocalizerConfig {
+            guided: None,
+            ..LocalizerConfig::new()
+        },
+        ..options(10, 4, 2)
+    };
+    let unguided = evaluate(&scene, matching, &paper, false).unwrap();
+    print(&guided);
+    print(&unguided);
+    assert!(guided.guided && !unguided.guided);
+    let mut rotations = (Vec::new(), Vec::new());
+    for (g, u) in guided.per_query.iter().zip(&unguided.per_query) {
+        assert_eq!(
+            (g.counts, g.evidence, g.failure.as_deref()),
+            (u.counts, u.evidence, u.failure.as_deref())
+        );
+        assert_eq!(g.candidate_rotation_deg, u.candidate_rotation_deg);
+        assert_eq!(u.guided, None);
+        assert_eq!(
+            u.rotation_deg,
+            u.failure
+                .is_none()
+                .then_some(u.candidate_rotation_deg)
+                .flatten()
+        );
+        if let (Some(a), Some(b)) = (g.rotation_deg, u.rotation_deg) {
+            rotations.0.push(a);
+            rotations.1.push(b);
+        }
+    }
+    assert!(
+        !rotations.0.is_empty(),
+        "the model localizes synthetic queries"
+    );
+    let (with, without) = (
+        rotations.0.iter().sum::<f64>(),
+        rotations.1.iter().sum::<f64>(),
+    );
+    assert!(
+        with < without,
+        "rotation errors {:?} against {:?}",
+        rotations.0,
+        rotations.1
+    );
 }
 
 /// `--capacity 128`: the protocol gives at most 128 keypoints per query, the report records

@@ -28,6 +28,7 @@ use std::time::Instant;
 use anyhow::{bail, Context};
 use clap::{Parser, ValueEnum};
 use gomatch::acceptance::{AcceptanceRule, Evidence, FEATURES};
+use gomatch::guided::{GuidedConfig, GuidedCounts};
 use gomatch::localizer::{Correspondence, MatchCounts, StageTimings};
 use gomatch::map::Map;
 use gomatch::sinkhorn::PlanScalar;
@@ -113,6 +114,10 @@ pub struct Args {
     /// option of `map features`; built before the timed queries, same results).
     #[arg(long)]
     pub view_features: bool,
+    /// Leave out guided re-matching: the pose is RANSAC-PnP's on the matcher's matches, as
+    /// in the paper (the oracle's always is RANSAC-PnP's on the ground-truth matches).
+    #[arg(long)]
+    pub no_guided: bool,
     /// Query keypoints as a new detector run on the photo would give them
     /// ([`FreshDetection::TYPICAL`]) instead of the reconstruction's own.
     #[arg(long)]
@@ -247,6 +252,9 @@ pub struct QueryResult {
     /// Whether that pose is right ([`pose_is_right`]); `null` without a pose.
     #[serde(default)]
     pub candidate_right: Option<bool>,
+    /// What guided re-matching did to the reported pose (absent in older reports).
+    #[serde(default)]
+    pub guided: Option<GuidedCounts>,
 }
 
 /// A pose is right when its reprojection error is at most [`WRONG_REPROJECTION_PX`] and
@@ -269,8 +277,12 @@ pub struct AcceptanceSummary {
     pub candidates_right: usize,
     /// Queries whose pose was accepted (reported as localized).
     pub accepted: usize,
-    /// Accepted poses that are wrong.
+    /// Accepted poses that are wrong, as the rule judged them (before guided re-matching).
     pub accepted_wrong: usize,
+    /// Accepted queries whose reported pose (after guided re-matching) is wrong (absent in
+    /// older reports).
+    #[serde(default)]
+    pub reported_wrong: Option<usize>,
     /// `1 - accepted_wrong / accepted` (`null` when none was accepted).
     pub precision: Option<f64>,
     /// Right accepted poses / right candidates: the share of the right poses the old
@@ -293,6 +305,13 @@ impl AcceptanceSummary {
             per_query.iter().filter(|q| q.failure.is_none()).collect();
         let accepted_right = accepted.iter().filter(|q| right(q)).count();
         let accepted_wrong = accepted.len() - accepted_right;
+        let reported_wrong = accepted
+            .iter()
+            .filter(|q| {
+                !q.rotation_deg
+                    .is_some_and(|r| pose_is_right(q.reprojection_px, r))
+            })
+            .count();
         let ratio = |a: usize, b: usize| (b > 0).then(|| a as f64 / b as f64);
         Self {
             rule,
@@ -300,6 +319,7 @@ impl AcceptanceSummary {
             candidates_right,
             accepted: accepted.len(),
             accepted_wrong,
+            reported_wrong: Some(reported_wrong),
             precision: ratio(accepted_right, accepted.len()),
             recall: ratio(accepted_right, candidates_right),
             right_of_all: ratio(accepted_right, per_query.len()).unwrap_or(0.0),
@@ -347,6 +367,10 @@ pub struct Report {
     /// Whether the map's precomputed view features were used.
     #[serde(default)]
     pub view_features: bool,
+    /// Whether accepted poses were re-matched by projection (`false` for the oracle, with
+    /// `--no-guided`, and in reports written before the localizer did it).
+    #[serde(default)]
+    pub guided: bool,
     /// Whether the query keypoints looked like a fresh detection (`eval --fresh-keypoints`).
     #[serde(default)]
     pub fresh_keypoints: bool,
@@ -450,6 +474,7 @@ pub fn oracle_correspondences(sample: &QuerySample) -> (Vec<[f64; 2]>, Vec<[f64;
 /// What one query produced, before scoring.
 struct Outcome {
     estimate: Option<Pose>,
+    guided: Option<GuidedCounts>,
     candidate: Option<Pose>,
     evidence: Option<Evidence>,
     confidence: Option<f32>,
@@ -486,6 +511,7 @@ fn oracle_outcome<const N: usize>(
     };
     Outcome {
         estimate,
+        guided: None,
         candidate: estimate,
         evidence: None,
         confidence: None,
@@ -549,6 +575,10 @@ fn localizer_outcome<const N: usize, S: PlanScalar>(
     };
     Ok(Outcome {
         estimate: result.outcome.ok(),
+        guided: config
+            .guided
+            .and(result.outcome.ok())
+            .map(|_| result.guided),
         candidate: result.candidate,
         evidence: result.evidence,
         confidence: result.confidence,
@@ -657,6 +687,7 @@ fn score(sample: &QuerySample, outcome: Outcome) -> QueryResult {
         candidate_reprojection_px: candidate_error,
         candidate_rotation_deg: candidate_rotation,
         candidate_right: candidate_rotation.map(|r| pose_is_right(candidate_error, r)),
+        guided: outcome.guided,
     }
 }
 
@@ -874,6 +905,7 @@ pub fn evaluate(
         k: options.protocol.k,
         capacity: options.protocol.max_keypoints,
         view_features: !features.is_empty(),
+        guided: options.localizer.guided.is_some() && !matches!(matching, Matching::Oracle),
         fresh_keypoints: options.protocol.fresh.is_some(),
         seed: options.protocol.seed,
         ransac_max_iterations: options.localizer.ransac.max_iterations,
@@ -1041,13 +1073,14 @@ fn print_report(report: &Report) {
     if let Some(a) = &report.acceptance {
         let percent = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{:.1} %", 100.0 * v));
         println!(
-            "  acceptance: {} accepted, {} of them wrong (precision {}); {} of {} right poses with >= 4 inliers kept (recall {})",
+            "  acceptance: {} accepted, {} of them wrong (precision {}); {} of {} right poses with >= 4 inliers kept (recall {}); reported poses wrong: {}",
             a.accepted,
             a.accepted_wrong,
             percent(a.precision),
             a.accepted - a.accepted_wrong,
             a.candidates_right,
-            percent(a.recall)
+            percent(a.recall),
+            a.reported_wrong.map_or("-".to_string(), |w| w.to_string())
         );
     }
     let t = &report.mean_timings_ms;
@@ -1094,6 +1127,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
                 ..RansacConfig::new()
             },
             acceptance: args.acceptance.as_deref().map(read_rule).transpose()?,
+            guided: (!args.no_guided).then(GuidedConfig::new),
             ..LocalizerConfig::new()
         },
         threads: args.threads,
