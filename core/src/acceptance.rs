@@ -18,6 +18,7 @@
 //! | 6 | share of the non-inliers within [`LOOSE_FACTOR`] x the threshold | near-misses of a right pose are noisy true matches |
 //! | 7 | share of the merged matches whose point projects in front of the camera, inside the box of the merged keypoints | the matched views overlap the query: under a right pose their points lie in its field of view |
 //! | 8 | `ln(1 + d / depth)`: distance `d` from the camera centre to the nearest selected view's centre over the inliers' mean depth | a right pose sits among the views that see what it sees |
+//! | 9 | `ln(1 + guided inliers)`: RANSAC-PnP inliers of the pose re-matched by projection ([`crate::guided`]; 0 when no round kept a pose) | under a right pose the views' projected points fall on many keypoints, under a wrong one on few |
 //!
 //! The weights are fitted on training scenes by `gomatch-sim fit-acceptance` from
 //! `gomatch-sim eval` reports (see docs/evaluation.md, "Acceptance rule").
@@ -32,7 +33,7 @@ use crate::pose::{camera_bearing, Pose};
 mod fitted;
 
 /// Number of features of [`Evidence::features`].
-pub const FEATURES: usize = 9;
+pub const FEATURES: usize = 10;
 /// Cells per image side of the coverage grid.
 pub const GRID: u32 = 8;
 /// The looser threshold of the support feature, as a multiple of RANSAC's threshold.
@@ -65,6 +66,10 @@ pub struct Evidence {
     /// inliers' mean depth.
     #[serde(default)]
     pub view_distance: f32,
+    /// Inliers of the pose re-matched by projection ([`crate::guided::GuidedCounts`]; 0 when
+    /// no round kept a pose; RANSAC-PnP's inliers when the localizer does not re-match).
+    #[serde(default)]
+    pub guided_inliers: u32,
 }
 
 impl Evidence {
@@ -83,6 +88,7 @@ impl Evidence {
             near / outliers,
             self.in_view as f32 / self.merged.max(1) as f32,
             libm::log1pf(self.view_distance.max(0.0)),
+            libm::log1pf(self.guided_inliers as f32),
         ]
     }
 }
@@ -357,6 +363,7 @@ mod tests {
             views: 3,
             in_view: merged / 4,
             view_distance: 1.5,
+            guided_inliers: 3 * inliers,
         }
     }
 
@@ -372,6 +379,7 @@ mod tests {
         assert_eq!(f[6], 0.5);
         assert_eq!(f[7], 0.25);
         assert!((f[8] - libm::logf(2.5)).abs() < 1e-6);
+        assert!((f[9] - libm::logf(61.0)).abs() < 1e-6);
         // No division by zero without matches.
         assert!(Evidence::default().features().iter().all(|v| v.is_finite()));
     }
@@ -380,7 +388,7 @@ mod tests {
     fn confidence_is_a_logistic_score_and_the_threshold_decides() {
         let rule = AcceptanceRule {
             bias: -6.0,
-            weights: [2.0, 0.0, 4.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            weights: [2.0, 0.0, 4.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
             min_confidence: 0.5,
         };
         let weak = rule.confidence(&evidence(5, 40, 2));

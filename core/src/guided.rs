@@ -1,11 +1,14 @@
-//! Guided re-matching: the accepted pose predicts where each selected view's points fall in
+//! Guided re-matching: RANSAC-PnP's pose predicts where each selected view's points fall in
 //! the query, each keypoint is paired with the nearest predicted point, and RANSAC-PnP
 //! ([`crate::ransac`]) re-estimates the pose on those pairs, in rounds of shrinking radius.
+//! The acceptance rule then judges the re-matched pose, its inliers one of the features
+//! ([`crate::acceptance`]).
 //!
 //! Not in the paper, whose pipeline ends with RANSAC-PnP on the network's matches (sec.
 //! 4.1): it is the guided matching of structure-based localization, geometric only like the
 //! matcher (positions, no descriptors). The network's matches locate the pose; the points it
-//! left unmatched, once projected, pin it down (`docs/evaluation.md`, "Guided re-matching").
+//! left unmatched, once projected, pin it down, and under a wrong pose they do not line up
+//! (`docs/evaluation.md`, "Guided re-matching").
 //!
 //! A round, on the query's normalised image plane:
 //! 1. [`nearest_points`]: per keypoint, the nearest projected point within the radius;

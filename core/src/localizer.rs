@@ -143,8 +143,9 @@ pub struct LocalizerConfig {
     /// trusted ([`Failure::LowConfidence`] when not); `None`: the rule fitted at the
     /// localizer's capacity, [`AcceptanceRule::for_capacity`].
     pub acceptance: Option<AcceptanceRule>,
-    /// Guided re-matching of an accepted pose ([`guided`]); `None`: the pose is RANSAC-PnP's
-    /// on the network's matches, as in the paper.
+    /// Guided re-matching of RANSAC-PnP's pose before the acceptance rule judges it
+    /// ([`guided`]); `None`: the pose is RANSAC-PnP's on the network's matches, as in the
+    /// paper (the rules are fitted with re-matching).
     pub guided: Option<GuidedConfig>,
 }
 
@@ -234,11 +235,11 @@ pub struct Localization {
     pub evidence: Option<Evidence>,
     /// The acceptance rule's confidence in that pose.
     pub confidence: Option<f32>,
-    /// That pose, accepted or not, as the rule judged it (before guided re-matching): for
-    /// evaluating the acceptance rule only. A refused pose ([`Failure::LowConfidence`]) is
-    /// not a localization.
+    /// The pose the rule judged (RANSAC-PnP's, re-matched), accepted or not: for evaluating
+    /// the acceptance rule only. A refused pose ([`Failure::LowConfidence`]) is not a
+    /// localization.
     pub candidate: Option<Pose>,
-    /// What guided re-matching did to an accepted pose.
+    /// What guided re-matching did to RANSAC-PnP's pose.
     pub guided: GuidedCounts,
 }
 
@@ -335,8 +336,8 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
 
     /// Localizes a query against the map (paper sec. 4.1): encodes the keypoints once,
     /// matches them against each selected view's points as bearing vectors (eq. 1),
-    /// merges the classifier-accepted matches, estimates the pose with RANSAC-PnP, and
-    /// re-matches an accepted pose by projection ([`guided`]).
+    /// merges the classifier-accepted matches, estimates the pose with RANSAC-PnP,
+    /// re-matches it by projection ([`guided`]) and judges it ([`acceptance`]).
     ///
     /// Invalid input is an `Err` and nothing runs: a camera with non-finite or
     /// non-positive intrinsics ([`Error::InvalidIntrinsics`]), more keypoints than `N`
@@ -399,12 +400,10 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         };
         if used > 0 {
             let centres = view_centres(map, &selected)?;
-            localization.outcome = self.solve(config, query, &centres, &mut localization)?;
-        }
-        if let (Ok(pose), Some(guided)) = (localization.outcome, config.guided) {
-            let (refined, counts) = self.guide(map, query, &selected, pose, &guided, config)?;
-            localization.outcome = Ok(refined);
-            localization.guided = counts;
+            localization.outcome = match self.solve(config, query, &centres, &mut localization)? {
+                Ok(found) => self.judge(map, &selected, config, query, found, &mut localization)?,
+                Err(failure) => Err(failure),
+            };
         }
         let done = now(clock);
         if clock.is_some() {
@@ -645,15 +644,15 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         Ok(())
     }
 
-    /// RANSAC-PnP + LM on the merged correspondences, then the acceptance rule on the
-    /// pose's evidence; marks the inliers of an accepted pose.
+    /// RANSAC-PnP + LM on the merged correspondences: the pose with its [`Evidence`] (the
+    /// re-matched inliers not yet counted), its inliers marked.
     fn solve(
         &mut self,
         config: &LocalizerConfig,
         query: &Query<'_>,
         view_centres: &[[f64; 3]],
         localization: &mut Localization,
-    ) -> Result<core::result::Result<Pose, Failure>> {
+    ) -> Result<core::result::Result<(Pose, Evidence), Failure>> {
         let len = self.merged_len;
         if len < config.min_matches {
             return Ok(Err(Failure::TooFewMatches {
@@ -683,27 +682,57 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
                     view_centres,
                 };
                 let evidence = acceptance::gather(&support, query.keypoints, &query.camera);
-                let rule = config.acceptance_rule(N);
-                let confidence = rule.confidence(&evidence);
-                localization.evidence = Some(evidence);
-                localization.confidence = Some(confidence);
-                localization.candidate = Some(estimate.pose);
-                if !rule.accepts(confidence) {
-                    return Ok(Err(Failure::LowConfidence {
-                        confidence,
-                        needed: rule.min_confidence,
-                        inliers: estimate.inlier_count,
-                    }));
-                }
                 for (c, &inlier) in self.merged.iter_mut().zip(estimate.inlier_mask) {
                     c.inlier = inlier;
                 }
-                Ok(Ok(estimate.pose))
+                Ok(Ok((estimate.pose, evidence)))
             }
             Err(Error::NoPoseFound) => Ok(Err(Failure::NoPoseFound)),
             Err(Error::DegenerateConfiguration) => Ok(Err(Failure::DegenerateMatches)),
             Err(other) => Err(other),
         }
+    }
+
+    /// Re-matches RANSAC-PnP's pose by projection ([`guided`], when configured), then
+    /// applies the acceptance rule to the evidence of both; a refused pose keeps no inlier
+    /// marks.
+    fn judge(
+        &mut self,
+        map: &Map<'_>,
+        selected: &[u32],
+        config: &LocalizerConfig,
+        query: &Query<'_>,
+        (pose, mut evidence): (Pose, Evidence),
+        localization: &mut Localization,
+    ) -> Result<core::result::Result<Pose, Failure>> {
+        let pose = match config.guided {
+            Some(guided) => {
+                let (refined, counts) = self.guide(map, query, selected, pose, &guided, config)?;
+                localization.guided = counts;
+                evidence.guided_inliers = u32::from(counts.inliers);
+                refined
+            }
+            None => {
+                evidence.guided_inliers = evidence.inliers;
+                pose
+            }
+        };
+        let rule = config.acceptance_rule(N);
+        let confidence = rule.confidence(&evidence);
+        localization.evidence = Some(evidence);
+        localization.confidence = Some(confidence);
+        localization.candidate = Some(pose);
+        if !rule.accepts(confidence) {
+            for c in self.merged.iter_mut() {
+                c.inlier = false;
+            }
+            return Ok(Err(Failure::LowConfidence {
+                confidence,
+                needed: rule.min_confidence,
+                inliers: localization.counts.inliers,
+            }));
+        }
+        Ok(Ok(pose))
     }
 }
 
@@ -1237,7 +1266,7 @@ mod tests {
             .any(|c| c.keypoint == 3 || c.keypoint == 9 || c.keypoint == 12));
         assert!(merged.iter().any(|c| c.keypoint == 7 && c.point == 9));
         let mut localization = Localization::failed(Failure::NoPoseFound);
-        let pose = l
+        let (pose, _) = l
             .solve(
                 &LocalizerConfig::new(),
                 &query,
@@ -1284,15 +1313,19 @@ mod tests {
             };
             let mut localization = Localization::failed(Failure::NoPoseFound);
             let centres = view_centres(&map, &[0]).expect("view 0");
-            let outcome = l
+            let found = l
                 .solve(&config, &query, &centres, &mut localization)
+                .expect("valid")
+                .expect("a pose");
+            let outcome = l
+                .judge(&map, &[0], &config, &query, found, &mut localization)
                 .expect("valid");
             (outcome, localization, l.inliers().count())
         };
         // Confidence sigmoid(6 - 1 * views) = sigmoid(3) = 0.953 with three views.
         let rule = |min_confidence| AcceptanceRule {
             bias: 6.0,
-            weights: [0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0],
+            weights: [0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0],
             min_confidence,
         };
         let (accepted, with_evidence, marked) = solve(rule(0.95));

@@ -34,6 +34,7 @@ fn example(i: u32, right: bool) -> Example {
             views,
             in_view: if right { merged - i % 5 } else { merged / 2 },
             view_distance: if right { 0.2 } else { 1.0 } + 0.1 * (i % 3) as f32,
+            guided_inliers: if right { 5 * inliers } else { inliers / 2 },
         },
         right,
     }
@@ -75,7 +76,7 @@ fn the_threshold_is_the_lowest_confidence_within_the_wrong_share() {
     // Confidence grows with the number of views: views 1 (wrong), 2, 3 (wrong), 4, 5.
     let rule = AcceptanceRule {
         bias: -3.0,
-        weights: [0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+        weights: [0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0],
         min_confidence: 0.0,
     };
     let by_views = |views: u32, right: bool| Example {

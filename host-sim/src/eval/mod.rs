@@ -115,7 +115,8 @@ pub struct Args {
     #[arg(long)]
     pub view_features: bool,
     /// Leave out guided re-matching: the pose is RANSAC-PnP's on the matcher's matches, as
-    /// in the paper (the oracle's always is RANSAC-PnP's on the ground-truth matches).
+    /// in the paper (the oracle's always is RANSAC-PnP's on the ground-truth matches); the
+    /// acceptance rules are fitted with it.
     #[arg(long)]
     pub no_guided: bool,
     /// Query keypoints as a new detector run on the photo would give them
@@ -252,7 +253,7 @@ pub struct QueryResult {
     /// Whether that pose is right ([`pose_is_right`]); `null` without a pose.
     #[serde(default)]
     pub candidate_right: Option<bool>,
-    /// What guided re-matching did to the reported pose (absent in older reports).
+    /// What guided re-matching did to that pose (absent in older reports).
     #[serde(default)]
     pub guided: Option<GuidedCounts>,
 }
@@ -277,12 +278,8 @@ pub struct AcceptanceSummary {
     pub candidates_right: usize,
     /// Queries whose pose was accepted (reported as localized).
     pub accepted: usize,
-    /// Accepted poses that are wrong, as the rule judged them (before guided re-matching).
+    /// Accepted poses that are wrong.
     pub accepted_wrong: usize,
-    /// Accepted queries whose reported pose (after guided re-matching) is wrong (absent in
-    /// older reports).
-    #[serde(default)]
-    pub reported_wrong: Option<usize>,
     /// `1 - accepted_wrong / accepted` (`null` when none was accepted).
     pub precision: Option<f64>,
     /// Right accepted poses / right candidates: the share of the right poses the old
@@ -305,13 +302,6 @@ impl AcceptanceSummary {
             per_query.iter().filter(|q| q.failure.is_none()).collect();
         let accepted_right = accepted.iter().filter(|q| right(q)).count();
         let accepted_wrong = accepted.len() - accepted_right;
-        let reported_wrong = accepted
-            .iter()
-            .filter(|q| {
-                !q.rotation_deg
-                    .is_some_and(|r| pose_is_right(q.reprojection_px, r))
-            })
-            .count();
         let ratio = |a: usize, b: usize| (b > 0).then(|| a as f64 / b as f64);
         Self {
             rule,
@@ -319,7 +309,6 @@ impl AcceptanceSummary {
             candidates_right,
             accepted: accepted.len(),
             accepted_wrong,
-            reported_wrong: Some(reported_wrong),
             precision: ratio(accepted_right, accepted.len()),
             recall: ratio(accepted_right, candidates_right),
             right_of_all: ratio(accepted_right, per_query.len()).unwrap_or(0.0),
@@ -367,8 +356,8 @@ pub struct Report {
     /// Whether the map's precomputed view features were used.
     #[serde(default)]
     pub view_features: bool,
-    /// Whether accepted poses were re-matched by projection (`false` for the oracle, with
-    /// `--no-guided`, and in reports written before the localizer did it).
+    /// Whether RANSAC-PnP's poses were re-matched by projection before the acceptance rule
+    /// (`false` for the oracle, with `--no-guided`, and in reports written before it).
     #[serde(default)]
     pub guided: bool,
     /// Whether the query keypoints looked like a fresh detection (`eval --fresh-keypoints`).
@@ -575,10 +564,7 @@ fn localizer_outcome<const N: usize, S: PlanScalar>(
     };
     Ok(Outcome {
         estimate: result.outcome.ok(),
-        guided: config
-            .guided
-            .and(result.outcome.ok())
-            .map(|_| result.guided),
+        guided: config.guided.and(result.candidate).map(|_| result.guided),
         candidate: result.candidate,
         evidence: result.evidence,
         confidence: result.confidence,
@@ -1073,14 +1059,13 @@ fn print_report(report: &Report) {
     if let Some(a) = &report.acceptance {
         let percent = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{:.1} %", 100.0 * v));
         println!(
-            "  acceptance: {} accepted, {} of them wrong (precision {}); {} of {} right poses with >= 4 inliers kept (recall {}); reported poses wrong: {}",
+            "  acceptance: {} accepted, {} of them wrong (precision {}); {} of {} right poses with >= 4 inliers kept (recall {})",
             a.accepted,
             a.accepted_wrong,
             percent(a.precision),
             a.accepted - a.accepted_wrong,
             a.candidates_right,
-            percent(a.recall),
-            a.reported_wrong.map_or("-".to_string(), |w| w.to_string())
+            percent(a.recall)
         );
     }
     let t = &report.mean_timings_ms;
