@@ -20,7 +20,7 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
-use crate::pose::Pose;
+use crate::pose::{camera_bearing, Pose};
 
 /// Rounds of re-matching, one per search radius.
 pub const ROUNDS: usize = 4;
@@ -76,12 +76,9 @@ pub struct GuidedCounts {
     pub inliers: u16,
 }
 
-/// `(x / z, y / z)` of a world point in the camera of `pose`; `None` at or behind the camera
-/// or when not finite.
-pub fn project(pose: &Pose, point: [f64; 3]) -> Option<[f64; 2]> {
-    let c = pose.transform(&Vector3::new(point[0], point[1], point[2]));
-    let projected = [c.x / c.z, c.y / c.z];
-    (c.z > 0.0 && projected.iter().all(|v| v.is_finite())).then_some(projected)
+/// The bearing of a world point in the camera of `pose` ([`camera_bearing`]).
+fn project(pose: &Pose, point: [f64; 3]) -> Option<[f64; 2]> {
+    camera_bearing(&pose.transform(&Vector3::new(point[0], point[1], point[2])))
 }
 
 /// Squared distance between a keypoint's bearing and a projected point.

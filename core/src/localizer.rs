@@ -520,9 +520,7 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             else {
                 break;
             };
-            let pixel = query.keypoints.get(k).copied().unwrap_or([f32::NAN; 2]);
-            *bearing = keypoint_bearing(&query.camera, pixel, k)?;
-            *position = map.point(point as usize)?.map(f64::from);
+            (*bearing, *position) = solver_pair(map, query, k, point)?;
             pairs += 1;
         }
         Ok(pairs)
@@ -635,10 +633,7 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             .iter()
             .zip(self.bearings.iter_mut().zip(self.points.iter_mut()))
         {
-            let index = usize::from(c.keypoint);
-            let pixel = query.keypoints.get(index).copied().unwrap_or([f32::NAN; 2]);
-            *bearing = keypoint_bearing(&query.camera, pixel, index)?;
-            *point = map.point(c.point as usize)?.map(f64::from);
+            (*bearing, *point) = solver_pair(map, query, usize::from(c.keypoint), c.point)?;
         }
         self.merged_len = kept;
         Ok(())
@@ -734,6 +729,23 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         }
         Ok(Ok(pose))
     }
+}
+
+/// The pose solver's input for keypoint `keypoint` paired with map point `point`: the
+/// keypoint's `f64` bearing, recomputed from its pixel, and the point's position.
+fn solver_pair(
+    map: &Map<'_>,
+    query: &Query<'_>,
+    keypoint: usize,
+    point: u32,
+) -> Result<([f64; 2], [f64; 3])> {
+    let pixel = query
+        .keypoints
+        .get(keypoint)
+        .copied()
+        .unwrap_or([f32::NAN; 2]);
+    let bearing = keypoint_bearing(&query.camera, pixel, keypoint)?;
+    Ok((bearing, map.point(point as usize)?.map(f64::from)))
 }
 
 /// Camera centres of the selected views, by slot.
