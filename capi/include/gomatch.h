@@ -24,13 +24,13 @@
 #define GOMATCH_LOCALIZER_ALIGN 8
 
 // Bytes of a workspace of capacity 128 (`gomatch_localizer_bytes(128)`).
-#define GOMATCH_LOCALIZER_BYTES_128 523360
+#define GOMATCH_LOCALIZER_BYTES_128 523368
 
 // Bytes of a workspace of capacity 256 (`gomatch_localizer_bytes(256)`).
-#define GOMATCH_LOCALIZER_BYTES_256 1046240
+#define GOMATCH_LOCALIZER_BYTES_256 1046248
 
 // Bytes of a workspace of capacity 1024 (`gomatch_localizer_bytes(1024)`).
-#define GOMATCH_LOCALIZER_BYTES_1024 5559776
+#define GOMATCH_LOCALIZER_BYTES_1024 5559784
 
 // Most views per query (image ids, or `k` nearest to a prior).
 #define GOMATCH_MAX_VIEWS 10

@@ -23,11 +23,11 @@ use gomatch_error::*;
 /// Alignment of a workspace's memory, in bytes.
 pub const GOMATCH_LOCALIZER_ALIGN: usize = 8;
 /// Bytes of a workspace of capacity 128 (`gomatch_localizer_bytes(128)`).
-pub const GOMATCH_LOCALIZER_BYTES_128: usize = 523_360;
+pub const GOMATCH_LOCALIZER_BYTES_128: usize = 523_368;
 /// Bytes of a workspace of capacity 256 (`gomatch_localizer_bytes(256)`).
-pub const GOMATCH_LOCALIZER_BYTES_256: usize = 1_046_240;
+pub const GOMATCH_LOCALIZER_BYTES_256: usize = 1_046_248;
 /// Bytes of a workspace of capacity 1024 (`gomatch_localizer_bytes(1024)`).
-pub const GOMATCH_LOCALIZER_BYTES_1024: usize = 5_559_776;
+pub const GOMATCH_LOCALIZER_BYTES_1024: usize = 5_559_784;
 
 /// A workspace: memory placed by the caller and set up by `gomatch_localizer_init`. It
 /// serves one call at a time: one workspace per concurrent caller.

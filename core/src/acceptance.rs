@@ -18,7 +18,13 @@
 //! | 6 | share of the non-inliers within [`LOOSE_FACTOR`] x the threshold | near-misses of a right pose are noisy true matches |
 //! | 7 | share of the merged matches whose point projects in front of the camera, inside the box of the merged keypoints | the matched views overlap the query: under a right pose their points lie in its field of view |
 //! | 8 | `ln(1 + d / depth)`: distance `d` from the camera centre to the nearest selected view's centre over the inliers' mean depth | a right pose sits among the views that see what it sees |
-//! | 9 | `ln(1 + guided inliers)`: RANSAC-PnP inliers of the pose re-matched by projection ([`crate::guided`]; 0 when no round kept a pose) | under a right pose the views' projected points fall on many keypoints, under a wrong one on few |
+//! | 9 | `ln((1 + g) / (1 + c))`: RANSAC-PnP inliers `g` of the pose re-matched by projection ([`crate::guided`]; 0 when no round kept a pose) over those `c` it would have by chance ([`crate::guided::chance_inliers`]) | under a right pose the views' projected points fall on many keypoints, under a wrong one on few, or on as many as their density makes coincide |
+//!
+//! Before the logistic model, a gate: a pose whose re-matched inliers are less than
+//! [`MIN_CHANCE_RATIO`] times the chance level (both plus one) has confidence 0. Re-matching
+//! did not confirm it: where the views' points are dense in the query image (a narrow field
+//! of view, a small image) a wrong pose re-matches to many inliers, and the other features
+//! cannot tell it from a right one.
 //!
 //! The weights are fitted on training scenes by `gomatch-sim fit-acceptance` from
 //! `gomatch-sim eval` reports (see docs/evaluation.md, "Acceptance rule").
@@ -40,6 +46,12 @@ pub const GRID: u32 = 8;
 pub const LOOSE_FACTOR: f64 = 4.0;
 /// Bound of [`Evidence::view_distance`] (no views, or a pose far off).
 pub const MAX_VIEW_DISTANCE: f64 = 1e6;
+/// Least [`Evidence::chance_ratio`] of a pose the rule scores (below it the confidence is 0).
+/// All but 3 of the 2,044 right training poses at N = 128, 256 and 1024 reach it (median
+/// about 23); at N = 256 so do 94 of the 184 right poses of `colmap/softmurata` (640 x 480
+/// frames, 7 deg field of view) and 3 of its 170 wrong ones (`docs/acceptance.md`, "Chance
+/// level").
+pub const MIN_CHANCE_RATIO: f32 = 3.0;
 
 /// What the pipeline knows about a pose, gathered after RANSAC-PnP.
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
@@ -70,6 +82,10 @@ pub struct Evidence {
     /// no round kept a pose; RANSAC-PnP's inliers when the localizer does not re-match).
     #[serde(default)]
     pub guided_inliers: u32,
+    /// Re-matched inliers expected by chance ([`crate::guided::chance_inliers`]; 0 without
+    /// re-matching).
+    #[serde(default)]
+    pub guided_chance: f32,
 }
 
 impl Evidence {
@@ -88,8 +104,20 @@ impl Evidence {
             near / outliers,
             self.in_view as f32 / self.merged.max(1) as f32,
             libm::log1pf(self.view_distance.max(0.0)),
-            libm::log1pf(self.guided_inliers as f32),
+            libm::logf(self.chance_ratio()),
         ]
+    }
+
+    /// `(1 + guided_inliers) / (1 + guided_chance)`: how many times the re-matched inliers
+    /// exceed the chance level.
+    pub fn chance_ratio(&self) -> f32 {
+        (1.0 + self.guided_inliers as f32) / (1.0 + self.guided_chance.max(0.0))
+    }
+
+    /// Whether re-matching confirmed the pose: [`Evidence::chance_ratio`] at least
+    /// [`MIN_CHANCE_RATIO`].
+    pub fn beyond_chance(&self) -> bool {
+        self.chance_ratio() >= MIN_CHANCE_RATIO
     }
 }
 
@@ -142,8 +170,12 @@ impl AcceptanceRule {
         min_confidence: 0.0,
     };
 
-    /// The logistic score of the evidence, in `[0, 1]`.
+    /// The logistic score of the evidence, in `[0, 1]`; 0 for a pose re-matching did not
+    /// confirm ([`Evidence::beyond_chance`]).
     pub fn confidence(&self, evidence: &Evidence) -> f32 {
+        if !evidence.beyond_chance() {
+            return 0.0;
+        }
         let z = self
             .weights
             .iter()
@@ -364,6 +396,7 @@ mod tests {
             in_view: merged / 4,
             view_distance: 1.5,
             guided_inliers: 3 * inliers,
+            guided_chance: 2.0,
         }
     }
 
@@ -379,9 +412,37 @@ mod tests {
         assert_eq!(f[6], 0.5);
         assert_eq!(f[7], 0.25);
         assert!((f[8] - libm::logf(2.5)).abs() < 1e-6);
-        assert!((f[9] - libm::logf(61.0)).abs() < 1e-6);
+        // 60 re-matched inliers where chance gives 2.
+        assert!((f[9] - libm::logf(61.0 / 3.0)).abs() < 1e-6);
         // No division by zero without matches.
         assert!(Evidence::default().features().iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn a_pose_re_matched_to_its_chance_level_has_no_confidence() {
+        let rule = AcceptanceRule {
+            bias: 0.0,
+            weights: [1.0; FEATURES],
+            min_confidence: 0.5,
+        };
+        let confirmed = evidence(20, 60, 16);
+        assert!(confirmed.beyond_chance() && rule.confidence(&confirmed) > 0.99);
+        // 60 re-matched inliers where chance gives 25: fewer than 3 times.
+        let at_chance = Evidence {
+            guided_chance: 25.0,
+            ..confirmed
+        };
+        assert!((at_chance.chance_ratio() - 61.0 / 26.0).abs() < 1e-6);
+        assert!(!at_chance.beyond_chance());
+        assert_eq!(rule.confidence(&at_chance), 0.0);
+        assert!(!rule.accepts(0.0) && AcceptanceRule::ACCEPT_ALL.accepts(0.0));
+        // Exactly 3 times passes.
+        let at_gate = Evidence {
+            guided_inliers: 59,
+            guided_chance: 19.0,
+            ..confirmed
+        };
+        assert!(at_gate.beyond_chance());
     }
 
     #[test]

@@ -13,8 +13,16 @@
 //! A round, on the query's normalised image plane:
 //! 1. [`nearest_points`]: per keypoint, the nearest projected point within the radius;
 //! 2. [`keep_mutual`]: a pair stays when no other keypoint lies closer to its point;
-//! 3. RANSAC-PnP on the pairs; its pose replaces the current one when it has at least
-//!    [`MIN_INLIERS`] inliers, otherwise the rounds stop.
+//! 3. RANSAC-PnP on the pairs (the matches' threshold, at most [`MAX_THRESHOLD_PX`]); its
+//!    pose replaces the current one when it has at least [`MIN_INLIERS`] inliers, otherwise
+//!    the rounds stop.
+//!
+//! Then the chance level: steps 1 and 2 at the last radius with the keypoints shifted by
+//! [`CHANCE_SHIFTS`] pair keypoints with points that do not correspond, as many as the
+//! density of both sets makes coincide; [`chance_inliers`] turns their mean into the inliers
+//! a pose would have by chance. Where points are dense in the image (a narrow field of view,
+//! many points per view) a wrong pose's projections still fall on many keypoints, and the
+//! rule weighs the inliers against that level.
 
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
@@ -26,8 +34,14 @@ use crate::pose::{camera_bearing, Pose};
 pub const ROUNDS: usize = 4;
 /// Fewest RANSAC inliers a round's pose needs to replace the pose.
 pub const MIN_INLIERS: usize = 6;
+/// Loosest RANSAC-PnP inlier threshold of the rounds, in pixels
+/// ([`GuidedConfig::max_threshold_px`]).
+pub const MAX_THRESHOLD_PX: f64 = 2.0;
 /// A keypoint without a paired point.
 pub const UNPAIRED: u32 = u32::MAX;
+/// Shifts of the keypoints, in multiples of the last radius, under which the pose's
+/// projections pair with them by chance only (four directions, beyond the radius).
+pub const CHANCE_SHIFTS: [[f64; 2]; 4] = [[4.0, 0.0], [-4.0, 0.0], [0.0, 4.0], [0.0, -4.0]];
 
 /// Settings of guided re-matching.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -35,6 +49,12 @@ pub struct GuidedConfig {
     /// Search radius of each round in pixels of the query image (converted with its mean
     /// focal length), largest first.
     pub radii_px: [f64; ROUNDS],
+    /// Cap on RANSAC-PnP's inlier threshold in the rounds, in pixels of the query image
+    /// (converted like the radii): the rounds use the matches' threshold on the normalised
+    /// plane ([`crate::ransac::RansacConfig::threshold`]) unless it is looser than this. At
+    /// a long focal length that threshold spans many pixels, and a chance pair's residual,
+    /// spread over the radius, passes it as easily as a true pair's.
+    pub max_threshold_px: f64,
 }
 
 impl Default for GuidedConfig {
@@ -49,12 +69,27 @@ impl GuidedConfig {
     pub const fn new() -> Self {
         Self {
             radii_px: [40.0, 20.0, 10.0, 5.0],
+            max_threshold_px: MAX_THRESHOLD_PX,
         }
     }
 
-    /// [`Error::InvalidConfig`] (`guided_radius`) unless every radius is finite and positive.
+    /// The rounds' RANSAC-PnP inlier threshold on the normalised image plane: `threshold`,
+    /// the matches' one, capped at [`GuidedConfig::max_threshold_px`] with the query's mean
+    /// focal length `focal`.
+    pub fn threshold(&self, threshold: f64, focal: f64) -> f64 {
+        threshold.min(self.max_threshold_px / focal)
+    }
+
+    /// The last radius on the normalised image plane, with the query's mean focal length.
+    pub fn last_radius(&self, focal: f64) -> f64 {
+        self.radii_px[ROUNDS - 1] / focal
+    }
+
+    /// [`Error::InvalidConfig`] (`guided_radius`) unless every radius and the threshold cap
+    /// are finite and positive.
     pub fn check(&self) -> Result<()> {
-        if self.radii_px.iter().all(|r| r.is_finite() && *r > 0.0) {
+        let positive = |v: &f64| v.is_finite() && *v > 0.0;
+        if self.radii_px.iter().all(positive) && positive(&self.max_threshold_px) {
             Ok(())
         } else {
             Err(Error::InvalidConfig {
@@ -74,6 +109,19 @@ pub struct GuidedCounts {
     pub pairs: u16,
     /// RANSAC-PnP inliers among them.
     pub inliers: u16,
+    /// Mean pairs at the last radius under the final pose with the keypoints shifted by
+    /// [`CHANCE_SHIFTS`] (0 when no round kept a pose).
+    #[serde(default)]
+    pub chance: u16,
+}
+
+/// Inliers a pose has by chance: `chance_pairs` pairs within `radius` whose residuals spread
+/// evenly over the disc, of which the share within RANSAC's `threshold` (both on the
+/// normalised image plane) are inliers.
+pub fn chance_inliers(chance_pairs: u16, threshold: f64, radius: f64) -> f32 {
+    let ratio = threshold / radius;
+    let share = (ratio * ratio).min(1.0);
+    (f64::from(chance_pairs) * share) as f32
 }
 
 /// The bearing of a world point in the camera of `pose` ([`camera_bearing`]).
@@ -81,21 +129,31 @@ fn project(pose: &Pose, point: [f64; 3]) -> Option<[f64; 2]> {
     camera_bearing(&pose.transform(&Vector3::new(point[0], point[1], point[2])))
 }
 
-/// Squared distance between a keypoint's bearing and a projected point.
-fn squared_distance(keypoint: [f32; 2], projected: [f64; 2]) -> f64 {
-    let dx = f64::from(keypoint[0]) - projected[0];
-    let dy = f64::from(keypoint[1]) - projected[1];
+/// Squared distance between a keypoint's bearing moved by `shift` and a projected point.
+fn squared_distance(keypoint: [f32; 2], shift: [f64; 2], projected: [f64; 2]) -> f64 {
+    let dx = f64::from(keypoint[0]) + shift[0] - projected[0];
+    let dy = f64::from(keypoint[1]) + shift[1] - projected[1];
     dx * dx + dy * dy
 }
 
-/// Step 1: for each keypoint (bearing in `keypoints`), the nearest of `points` (map index,
-/// world position) projected with `pose`, if closer than `radius` and than its best so far
+/// Where the keypoints are, as bearings, and how far they are moved (zero, or a chance
+/// shift).
+#[derive(Debug, Clone, Copy)]
+pub struct Shifted<'a> {
+    /// Keypoint bearings.
+    pub keypoints: &'a [[f32; 2]],
+    /// Added to every keypoint.
+    pub shift: [f64; 2],
+}
+
+/// Step 1: for each keypoint of `keypoints`, the nearest of `points` (map index, world
+/// position) projected with `pose`, if closer than `radius` and than its best so far
 /// (`best_point` / `best_distance`, squared; start them at [`UNPAIRED`] / infinity and call
 /// once per view). A point offered twice (seen by two views) changes nothing.
 pub fn nearest_points(
     pose: &Pose,
     points: impl Iterator<Item = (u32, [f64; 3])>,
-    keypoints: &[[f32; 2]],
+    keypoints: Shifted<'_>,
     radius: f64,
     best_point: &mut [u32],
     best_distance: &mut [f64],
@@ -106,11 +164,12 @@ pub fn nearest_points(
             continue;
         };
         for ((&keypoint, point), distance) in keypoints
+            .keypoints
             .iter()
             .zip(best_point.iter_mut())
             .zip(best_distance.iter_mut())
         {
-            let d = squared_distance(keypoint, projected);
+            let d = squared_distance(keypoint, keypoints.shift, projected);
             if d < limit && d < *distance {
                 (*point, *distance) = (index, d);
             }
@@ -123,12 +182,12 @@ pub fn nearest_points(
 /// one pair. `position` gives a map index's world position.
 pub fn keep_mutual(
     pose: &Pose,
-    keypoints: &[[f32; 2]],
+    keypoints: Shifted<'_>,
     best_point: &mut [u32],
     best_distance: &[f64],
     position: impl Fn(u32) -> Result<[f64; 3]>,
 ) -> Result<()> {
-    for k in 0..best_point.len().min(keypoints.len()) {
+    for k in 0..best_point.len().min(keypoints.keypoints.len()) {
         let (Some(&point), Some(&own)) = (best_point.get(k), best_distance.get(k)) else {
             continue;
         };
@@ -139,10 +198,14 @@ pub fn keep_mutual(
             best_point[k] = UNPAIRED;
             continue;
         };
-        let beaten = keypoints.iter().enumerate().any(|(other, &keypoint)| {
-            let d = squared_distance(keypoint, projected);
-            other != k && (d < own || (d == own && other < k))
-        });
+        let beaten = keypoints
+            .keypoints
+            .iter()
+            .enumerate()
+            .any(|(other, &keypoint)| {
+                let d = squared_distance(keypoint, keypoints.shift, projected);
+                other != k && (d < own || (d == own && other < k))
+            });
         if beaten {
             best_point[k] = UNPAIRED;
         }
@@ -154,6 +217,13 @@ pub fn keep_mutual(
 mod tests {
     use super::*;
     use nalgebra::{Rotation3, Vector3};
+
+    fn unshifted(keypoints: &[[f32; 2]]) -> Shifted<'_> {
+        Shifted {
+            keypoints,
+            shift: [0.0; 2],
+        }
+    }
 
     fn identity() -> Pose {
         Pose::new(Rotation3::identity(), Vector3::zeros())
@@ -176,7 +246,7 @@ mod tests {
             nearest_points(
                 &identity(),
                 on_plane(&points),
-                &keypoints,
+                unshifted(&keypoints),
                 0.5,
                 &mut best,
                 &mut distance,
@@ -192,7 +262,7 @@ mod tests {
         nearest_points(
             &identity(),
             behind.into_iter(),
-            &[[0.0, 0.0]],
+            unshifted(&[[0.0, 0.0]]),
             1.0,
             &mut best,
             &mut distance,
@@ -209,32 +279,86 @@ mod tests {
         nearest_points(
             &identity(),
             on_plane(&points),
-            &keypoints,
+            unshifted(&keypoints),
             1.0,
             &mut best,
             &mut distance,
         );
         assert_eq!(best, [0, 0, 1, 1]);
         let position = |i: u32| Ok([points[i as usize][0], points[i as usize][1], 1.0]);
-        keep_mutual(&identity(), &keypoints, &mut best, &distance, position).unwrap();
+        keep_mutual(
+            &identity(),
+            unshifted(&keypoints),
+            &mut best,
+            &distance,
+            position,
+        )
+        .unwrap();
         // Point 1 is 0.1 from both keypoints 2 and 3 (up to rounding): one keeps it.
         assert_eq!(best[..2], [UNPAIRED, 0]);
         assert_eq!(best[2..].iter().filter(|&&p| p == 1).count(), 1);
     }
 
     #[test]
-    fn radii_must_be_finite_and_positive() {
+    fn shifted_keypoints_pair_with_the_points_at_their_new_place() {
+        let keypoints = [[0.0, 0.0], [1.0, 0.0]];
+        let points = [[0.0, 0.0], [1.0, 0.0], [2.05, 0.0]];
+        let (mut best, mut distance) = ([UNPAIRED; 2], [f64::INFINITY; 2]);
+        let shifted = Shifted {
+            keypoints: &keypoints,
+            shift: [1.0, 0.0],
+        };
+        nearest_points(
+            &identity(),
+            on_plane(&points),
+            shifted,
+            0.1,
+            &mut best,
+            &mut distance,
+        );
+        assert_eq!(best, [1, 2]);
+        assert!((distance[1] - 0.05 * 0.05).abs() < 1e-12);
+    }
+
+    #[test]
+    fn chance_inliers_are_the_pairs_within_the_threshold_share_of_the_disc() {
+        assert_eq!(chance_inliers(100, 1.0, 5.0), 4.0);
+        assert_eq!(chance_inliers(100, 1.0, 2.0), 25.0);
+        // A threshold beyond the radius makes every chance pair an inlier.
+        assert_eq!(chance_inliers(100, 6.0, 5.0), 100.0);
+        assert_eq!(chance_inliers(0, 1.0, 5.0), 0.0);
+    }
+
+    #[test]
+    fn the_rounds_threshold_is_the_matches_capped_in_pixels() {
+        let config = GuidedConfig::new();
+        // 1e-3 is 1 px at a focal length of 1000 px: kept.
+        assert_eq!(config.threshold(1e-3, 1000.0), 1e-3);
+        // At 5000 px it would be 5 px: capped at 2 px.
+        assert_eq!(config.threshold(1e-3, 5000.0), 2.0 / 5000.0);
+        assert_eq!(config.last_radius(500.0), 0.01);
+    }
+
+    #[test]
+    fn radii_and_threshold_must_be_finite_and_positive() {
         assert!(GuidedConfig::new().check().is_ok());
         for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
-            let config = GuidedConfig {
+            let radius = GuidedConfig {
                 radii_px: [40.0, bad, 10.0, 5.0],
+                ..GuidedConfig::new()
             };
-            assert_eq!(
-                config.check(),
-                Err(Error::InvalidConfig {
-                    parameter: "guided_radius"
-                })
-            );
+            let threshold = GuidedConfig {
+                max_threshold_px: bad,
+                ..GuidedConfig::new()
+            };
+            for config in [radius, threshold] {
+                assert_eq!(
+                    config.check(),
+                    Err(Error::InvalidConfig {
+                        parameter: "guided_radius"
+                    })
+                );
+            }
         }
     }
 }

@@ -24,7 +24,7 @@ use crate::acceptance::{self, AcceptanceRule, Evidence, PoseSupport};
 use crate::camera::Camera;
 pub use crate::error::Failure;
 use crate::error::{Error, Input, Result};
-use crate::guided::{self, GuidedConfig, GuidedCounts, UNPAIRED};
+use crate::guided::{self, GuidedConfig, GuidedCounts, Shifted, UNPAIRED};
 use crate::limits::MIN_CORRESPONDENCES;
 use crate::map::Map;
 use crate::matcher::Matcher;
@@ -433,12 +433,17 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         self.set_query(query)?;
         let n = query.keypoints.len();
         let mut counts = GuidedCounts::default();
+        let ransac = RansacConfig {
+            threshold: guided.threshold(config.ransac.threshold, query.camera.mean_focal()),
+            ..config.ransac
+        };
         for radius_px in guided.radii_px {
             self.pair_by_projection(
                 map,
                 selected,
                 &pose,
                 radius_px / query.camera.mean_focal(),
+                [0.0; 2],
                 n,
             )?;
             let pairs = self.pairs_to_solver_input(map, query, n)?;
@@ -447,34 +452,62 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             }
             let bearings = self.bearings.get(..pairs).unwrap_or(&[]);
             let points = self.points.get(..pairs).unwrap_or(&[]);
-            match estimate_pose(bearings, points, &config.ransac, &mut self.pnp) {
+            match estimate_pose(bearings, points, &ransac, &mut self.pnp) {
                 Ok(estimate) if estimate.inlier_count >= guided::MIN_INLIERS => {
                     pose = estimate.pose;
                     counts = GuidedCounts {
                         rounds: counts.rounds.saturating_add(1),
                         pairs: u16::try_from(pairs).unwrap_or(u16::MAX),
                         inliers: u16::try_from(estimate.inlier_count).unwrap_or(u16::MAX),
+                        chance: 0,
                     };
                 }
                 Ok(_) | Err(Error::NoPoseFound | Error::DegenerateConfiguration) => break,
                 Err(other) => return Err(other),
             }
         }
+        if counts.rounds > 0 {
+            let last = guided.last_radius(query.camera.mean_focal());
+            counts.chance = self.chance_pairs(map, selected, &pose, last, n)?;
+        }
         Ok((pose, counts))
     }
 
-    /// Steps 1 and 2 of a guided round: per keypoint (bearing in `network_input`, from
-    /// [`Localizer::set_query`]) its mutual nearest point of the views within `radius` in
-    /// `view_points` ([`UNPAIRED`] when none).
-    fn pair_by_projection(
+    /// The chance level of guided re-matching: mean pairs of `pose` at `radius` over the
+    /// keypoints shifted by [`guided::CHANCE_SHIFTS`] radii.
+    fn chance_pairs(
         &mut self,
         map: &Map<'_>,
         selected: &[u32],
         pose: &Pose,
         radius: f64,
         n: usize,
+    ) -> Result<u16> {
+        let mut total = 0;
+        for [x, y] in guided::CHANCE_SHIFTS {
+            self.pair_by_projection(map, selected, pose, radius, [x * radius, y * radius], n)?;
+            let paired = self.view_points.iter().take(n).filter(|&&p| p != UNPAIRED);
+            total += paired.count();
+        }
+        Ok(u16::try_from(total / guided::CHANCE_SHIFTS.len()).unwrap_or(u16::MAX))
+    }
+
+    /// Steps 1 and 2 of a guided round: per keypoint (bearing in `network_input`, from
+    /// [`Localizer::set_query`], moved by `shift`) its mutual nearest point of the views
+    /// within `radius` in `view_points` ([`UNPAIRED`] when none).
+    fn pair_by_projection(
+        &mut self,
+        map: &Map<'_>,
+        selected: &[u32],
+        pose: &Pose,
+        radius: f64,
+        shift: [f64; 2],
+        n: usize,
     ) -> Result<()> {
-        let keypoints = self.network_input.get(..n).unwrap_or(&[]);
+        let keypoints = Shifted {
+            keypoints: self.network_input.get(..n).unwrap_or(&[]),
+            shift,
+        };
         let best_point = self.view_points.get_mut(..n).unwrap_or(&mut []);
         let best_distance = self
             .points
@@ -705,6 +738,12 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
                 let (refined, counts) = self.guide(map, query, selected, pose, &guided, config)?;
                 localization.guided = counts;
                 evidence.guided_inliers = u32::from(counts.inliers);
+                let focal = query.camera.mean_focal();
+                evidence.guided_chance = guided::chance_inliers(
+                    counts.chance,
+                    guided.threshold(config.ransac.threshold, focal),
+                    guided.last_radius(focal),
+                );
                 refined
             }
             None => {
@@ -1214,6 +1253,21 @@ mod tests {
         // Every keypoint pairs with its own point (the views' other 16 points have none).
         let all = CAP as u16;
         assert_eq!((counts.rounds, counts.pairs, counts.inliers), (4, all, all));
+        // The 80 points lie tens of pixels apart: with the keypoints shifted by 20 px none
+        // meets a point within the last radius, 5 px, by chance.
+        assert_eq!(counts.chance, 0);
+        // Within 25 px (keypoints shifted by 100 px) about half of them do.
+        let wide = GuidedConfig {
+            radii_px: [40.0, 30.0, 25.0, 25.0],
+            ..GuidedConfig::new()
+        };
+        let (_, wide_counts) = l
+            .guide(&map, &query, &[0, 1], near, &wide, &config)
+            .expect("valid");
+        assert!(
+            wide_counts.chance > all / 4 && wide_counts.chance < all,
+            "{wide_counts:?}"
+        );
         // A pose that puts no point near a keypoint stays as it was.
         let far = Pose::new(
             truth.rotation,
@@ -1230,6 +1284,7 @@ mod tests {
         let config = LocalizerConfig {
             guided: Some(GuidedConfig {
                 radii_px: [40.0, 20.0, f64::NAN, 5.0],
+                ..GuidedConfig::new()
             }),
             ..LocalizerConfig::new()
         };

@@ -35,6 +35,7 @@ fn example(i: u32, right: bool) -> Example {
             in_view: if right { merged - i % 5 } else { merged / 2 },
             view_distance: if right { 0.2 } else { 1.0 } + 0.1 * (i % 3) as f32,
             guided_inliers: if right { 5 * inliers } else { inliers / 2 },
+            guided_chance: (i % 3) as f32,
         },
         right,
     }
@@ -71,6 +72,30 @@ fn the_fit_refuses_the_wrong_training_poses_and_is_deterministic() {
     assert!(Scores::of(&tolerant, &examples).accepted >= scores.accepted);
 }
 
+/// Poses under the chance gate have confidence 0 whatever the weights, and the logistic
+/// model is fitted without them.
+#[test]
+fn poses_under_the_chance_gate_stay_out_of_the_logistic_fit() {
+    let examples = examples();
+    let gated: Vec<Example> = (0..10)
+        .map(|i| {
+            let mut e = example(i, i % 2 == 0);
+            e.evidence.guided_chance = e.evidence.guided_inliers as f32;
+            e
+        })
+        .collect();
+    assert!(gated.iter().all(|e| !e.evidence.beyond_chance()));
+    let rule = fit(&examples, 1e-2, Operating::MaxWrong(0.0)).unwrap();
+    let with_gated = fit(
+        &[&examples[..], &gated[..]].concat(),
+        1e-2,
+        Operating::MaxWrong(0.0),
+    )
+    .unwrap();
+    assert_eq!((with_gated.bias, with_gated.weights), (rule.bias, rule.weights));
+    assert!(gated.iter().all(|e| with_gated.confidence(&e.evidence) == 0.0));
+}
+
 #[test]
 fn the_threshold_is_the_lowest_confidence_within_the_wrong_share() {
     // Confidence grows with the number of views: views 1 (wrong), 2, 3 (wrong), 4, 5.
@@ -82,6 +107,8 @@ fn the_threshold_is_the_lowest_confidence_within_the_wrong_share() {
     let by_views = |views: u32, right: bool| Example {
         evidence: Evidence {
             views,
+            // Past the chance gate.
+            guided_inliers: 10,
             ..Evidence::default()
         },
         right,

@@ -333,9 +333,16 @@ fn acceptance_counts_are_consistent_with_the_queries() {
             q.candidate_right,
             Some(pose_is_right(q.candidate_reprojection_px, rotation))
         );
-        // Every candidate was re-matched, and the rule saw the re-matched inliers.
+        // Every candidate was re-matched, and the rule saw the re-matched inliers and their
+        // chance level (pairs of shifted keypoints, at most the keypoints).
         let guided = q.guided.expect("a candidate is re-matched");
         assert_eq!(evidence.guided_inliers, u32::from(guided.inliers));
+        assert!(usize::from(guided.chance) <= q.keypoints);
+        assert_eq!(
+            guided.rounds == 0,
+            evidence.guided_chance == 0.0 && guided.chance == 0
+        );
+        assert!(evidence.guided_chance <= f32::from(guided.chance));
         assert!(guided.rounds == 0 || usize::from(guided.inliers) >= gomatch::guided::MIN_INLIERS);
         assert!(guided.inliers <= guided.pairs);
         if q.failure.is_none() {
@@ -410,6 +417,7 @@ fn guided_re_matching_refines_the_judged_poses() {
             assert_eq!(
                 gomatch::acceptance::Evidence {
                     guided_inliers: ue.inliers,
+                    guided_chance: 0.0,
                     ..ge
                 },
                 ue

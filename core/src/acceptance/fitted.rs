@@ -8,75 +8,67 @@ pub(super) type FittedRule = (f32, [f32; 10], f32);
 /// (max_wrong, min_confidence, recall) of each operating point.
 pub(super) type FittedPoints = [(f32, f32, f32); 4];
 
-/// Fitted at N = 128 on 66 training scenes: 5 of 535 accepted wrong (0.9 %), recall 90.9 % (530 of 583);
-/// validation: 262 of 403 accepted wrong (65.0 %), recall 92.8 % (141 of 152).
+/// Fitted at N = 128 on 66 training scenes: 5 of 581 accepted wrong (0.9 %), recall 98.8 % (576 of 583);
+/// validation: 3 of 128 accepted wrong (2.3 %), recall 85.0 % (125 of 147).
 pub(super) const RULE_128: FittedRule = (
-    -8.910511,
+    -9.869138,
     [
-        0.7662872, 0.490175, 6.181293, 1.9311348, 4.644278, 0.12728389, 5.6172395, 2.0904877,
-        -3.7132525, 1.2493346,
+        0.46916658, 0.34894368, 2.7704563, 0.34841615, 1.1474041, 0.09250244, 3.9986725, 3.0158195,
+        -5.579163, 3.1042106,
     ],
-    0.7040787,
+    0.5029266,
 );
 
 /// The operating points of [`RULE_128`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_128: FittedPoints = [
-    (0.005, 0.71602744, 0.9005146),
-    (0.01, 0.7040787, 0.90909094),
-    (0.02, 0.6085225, 0.948542),
-    (0.05, 0.44839212, 0.97770154),
+    (0.005, 0.6867169, 0.96569467),
+    (0.01, 0.5029266, 0.9879931),
+    (0.02, 0.4183547, 0.9897084),
+    (0.05, 0.2716441, 0.9948542),
 ];
 
-/// Fitted at N = 256 on 66 training scenes: 6 of 682 accepted wrong (0.9 %), recall 96.7 % (676 of 699);
-/// validation: 164 of 477 accepted wrong (34.4 %), recall 96.6 % (313 of 324).
+/// Fitted at N = 256 on 66 training scenes: 6 of 698 accepted wrong (0.9 %), recall 99.0 % (692 of 699);
+/// validation: 1 of 225 accepted wrong (0.4 %), recall 70.2 % (224 of 319).
 pub(super) const RULE_256: FittedRule = (
-    -12.184648,
+    -13.935395,
     [
-        0.6590307,
-        0.3875531,
-        5.3795085,
-        2.6916282,
-        7.050863,
-        0.081102274,
-        6.0395117,
-        2.4734836,
-        -3.4136376,
-        1.4296745,
+        0.6815266,
+        0.387866,
+        3.8521204,
+        1.0922189,
+        5.315758,
+        0.113128126,
+        5.1843553,
+        4.341882,
+        -3.9802816,
+        2.5756373,
     ],
-    0.58186525,
+    0.492905,
 );
 
 /// The operating points of [`RULE_256`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_256: FittedPoints = [
-    (0.005, 0.5992225, 0.9613734),
-    (0.01, 0.58186525, 0.96709585),
-    (0.02, 0.4483441, 0.9885551),
-    (0.05, 0.35335797, 0.99427754),
+    (0.005, 0.67576015, 0.96709585),
+    (0.01, 0.492905, 0.9899857),
+    (0.02, 0.38253748, 0.99427754),
+    (0.05, 0.24843766, 1.0),
 ];
 
-/// Fitted at N = 1024 on 66 training scenes: 7 of 733 accepted wrong (1.0 %), recall 95.5 % (726 of 760);
-/// validation: 2 of 550 accepted wrong (0.4 %), recall 97.5 % (548 of 562).
+/// Fitted at N = 1024 on 66 training scenes: 7 of 754 accepted wrong (0.9 %), recall 98.0 % (747 of 762);
+/// validation: 0 of 551 accepted wrong (0.0 %), recall 97.9 % (551 of 563).
 pub(super) const RULE_1024: FittedRule = (
-    -8.631167,
+    -10.527206,
     [
-        0.31982976,
-        0.7685325,
-        2.6024806,
-        2.108245,
-        4.613837,
-        0.073458366,
-        5.842538,
-        2.5408936,
-        -3.5377524,
-        1.2285305,
+        0.63591206, 0.21934073, 2.103642, 0.81632817, 0.24047111, 0.12665299, 6.2953825, 4.7263975,
+        -3.0971363, 2.185878,
     ],
-    0.6772305,
+    0.58011085,
 );
 
 /// The operating points of [`RULE_1024`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_1024: FittedPoints = [
-    (0.005, 0.8335575, 0.9026316),
-    (0.01, 0.6772305, 0.95526314),
-    (0.02, 0.5773163, 0.96710527),
-    (0.05, 0.3253183, 0.98421055),
+    (0.005, 0.6837928, 0.96587926),
+    (0.01, 0.58011085, 0.98031497),
+    (0.02, 0.40812445, 0.9908137),
+    (0.05, 0.22866967, 0.996063),
 ];

@@ -292,9 +292,16 @@ impl Operating {
     }
 }
 
-/// Fits the rule on the examples.
+/// Fits the rule on the examples: the logistic model on those past the chance gate
+/// ([`gomatch::acceptance::Evidence::beyond_chance`]; the others have confidence 0), the
+/// threshold on all.
 pub fn fit(examples: &[Example], l2: f64, operating: Operating) -> anyhow::Result<AcceptanceRule> {
-    let (bias, weights) = logistic_fit(examples, l2)?;
+    let gated: Vec<Example> = examples
+        .iter()
+        .filter(|e| e.evidence.beyond_chance())
+        .copied()
+        .collect();
+    let (bias, weights) = logistic_fit(&gated, l2)?;
     let mut rule = AcceptanceRule {
         bias: bias as f32,
         weights: weights.map(|w| w as f32),
