@@ -92,8 +92,13 @@ fn poses_under_the_chance_gate_stay_out_of_the_logistic_fit() {
         Operating::MaxWrong(0.0),
     )
     .unwrap();
-    assert_eq!((with_gated.bias, with_gated.weights), (rule.bias, rule.weights));
-    assert!(gated.iter().all(|e| with_gated.confidence(&e.evidence) == 0.0));
+    assert_eq!(
+        (with_gated.bias, with_gated.weights),
+        (rule.bias, rule.weights)
+    );
+    assert!(gated
+        .iter()
+        .all(|e| with_gated.confidence(&e.evidence) == 0.0));
 }
 
 #[test]
