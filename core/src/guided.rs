@@ -85,6 +85,16 @@ impl GuidedConfig {
         self.radii_px[ROUNDS - 1] / focal
     }
 
+    /// [`chance_inliers`] of `chance_pairs` at the rounds' threshold ([`Self::threshold`] of
+    /// the matches' `threshold`) and the last radius.
+    pub fn chance_inliers(&self, chance_pairs: u16, threshold: f64, focal: f64) -> f32 {
+        chance_inliers(
+            chance_pairs,
+            self.threshold(threshold, focal),
+            self.last_radius(focal),
+        )
+    }
+
     /// [`Error::InvalidConfig`] (`guided_radius`) unless every radius and the threshold cap
     /// are finite and positive.
     pub fn check(&self) -> Result<()> {

@@ -433,19 +433,13 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         self.set_query(query)?;
         let n = query.keypoints.len();
         let mut counts = GuidedCounts::default();
+        let focal = query.camera.mean_focal();
         let ransac = RansacConfig {
-            threshold: guided.threshold(config.ransac.threshold, query.camera.mean_focal()),
+            threshold: guided.threshold(config.ransac.threshold, focal),
             ..config.ransac
         };
         for radius_px in guided.radii_px {
-            self.pair_by_projection(
-                map,
-                selected,
-                &pose,
-                radius_px / query.camera.mean_focal(),
-                [0.0; 2],
-                n,
-            )?;
+            self.pair_by_projection(map, selected, &pose, radius_px / focal, [0.0; 2], n)?;
             let pairs = self.pairs_to_solver_input(map, query, n)?;
             if pairs < guided::MIN_INLIERS {
                 break;
@@ -467,7 +461,7 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             }
         }
         if counts.rounds > 0 {
-            let last = guided.last_radius(query.camera.mean_focal());
+            let last = guided.last_radius(focal);
             counts.chance = self.chance_pairs(map, selected, &pose, last, n)?;
         }
         Ok((pose, counts))
@@ -738,11 +732,10 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
                 let (refined, counts) = self.guide(map, query, selected, pose, &guided, config)?;
                 localization.guided = counts;
                 evidence.guided_inliers = u32::from(counts.inliers);
-                let focal = query.camera.mean_focal();
-                evidence.guided_chance = guided::chance_inliers(
+                evidence.guided_chance = guided.chance_inliers(
                     counts.chance,
-                    guided.threshold(config.ransac.threshold, focal),
-                    guided.last_radius(focal),
+                    config.ransac.threshold,
+                    query.camera.mean_focal(),
                 );
                 refined
             }
