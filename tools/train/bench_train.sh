@@ -3,9 +3,10 @@
 #
 #   tools/train/bench_train.sh WIDTH ENCODER_BLOCKS POINTS [trainer options ...]
 #
-# e.g. `tools/train/bench_train.sh 128 12 256` (the paper's configuration) or `... 64 6 256 --bf16`. Runs
-# `python -m gomatch_train.bench_train` in the trainer's virtualenv (setup_venv.sh) with a stage's defaults
-# (--workers 2 --threads 1 --compile --batch 32; later options override them); the last line is `samples/s: X`.
+# e.g. `tools/train/bench_train.sh 128 12 256` (the paper's configuration) or `... 48 4 256 --no-bf16`. Runs
+# `python -m gomatch_train.bench_train` in the trainer's virtualenv (setup_venv.sh) with the paper-size stages'
+# settings (--workers 2 --threads 1 --compile --bf16 --batch 32; later options override them); the last line is
+# `samples/s: X`.
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 venv="$("$here/setup_venv.sh")"

@@ -1,14 +1,16 @@
 """Training throughput of whole trainer steps on full sets: `tools/train/bench_train.sh WIDTH ENCODER_BLOCKS POINTS`.
 
-    python -m gomatch_train.bench_train 128 12 256 [--steps 6 --warmup 3] [trainer options ...]
+    python -m gomatch_train.bench_train 128 12 256 [--steps 6 --warmup 6] [trainer options ...]
 
 Builds synthetic samples that the trainer's subsampling (outlier rate 0.5, `--max-points POINTS`) turns into full
 sets of POINTS keypoints and POINTS 3D points, then runs the trainer's own step (`Run.train_batch`: forward and
 losses per sample, backward, the workers' gradient sum, Adam) on `--batch` samples per step, in the trainer's
-processes (`--workers`, `--threads`). Defaults are a stage's (`stage.sh`): `--workers 2 --threads 1 --compile
---batch 32`; any trainer option after the three numbers overrides them (e.g. `--bf16`, `--workers 1 --threads 2`).
-The first `--warmup` steps (compilation) are not timed. Prints one line per timed step, the CPU time per sample
-(all processes; the better figure on a busy machine) and, last, `samples/s: X` (wall time).
+processes (`--workers`, `--threads`). Defaults are the paper-size runs' stages (`stage.sh`, their `run.json`
+`trainer_options`): `--workers 2 --threads 1 --compile --bf16 --batch 32`; any trainer option after the three numbers
+overrides them (e.g. `--no-bf16`, as the narrow device runs train, or `--workers 1 --threads 2`).
+The first `--warmup` steps are not timed (compilation, and matrix kernels made for the first shapes: the
+processes reach their steady rate after a few steps). Prints one line per timed step, the CPU time per sample (all
+processes; the better figure on a busy machine) and, last, `samples/s: X` (wall time).
 """
 
 import argparse
@@ -26,7 +28,7 @@ from .synthetic import random_sample
 from .train import Run, configure_cpu, epoch_samples, parse_args
 from . import compiled
 
-STAGE_DEFAULTS = ["--workers", "2", "--threads", "1", "--compile", "--batch", "32"]
+STAGE_DEFAULTS = ["--workers", "2", "--threads", "1", "--compile", "--bf16", "--batch", "32"]
 DISTINCT_SAMPLES = 16
 
 
@@ -78,7 +80,8 @@ def main(argv=None) -> None:
     p.add_argument("encoder_blocks", type=int)
     p.add_argument("points", type=int)
     p.add_argument("--steps", type=int, default=6, help="timed optimizer steps")
-    p.add_argument("--warmup", type=int, default=3, help="untimed steps first (compilation)")
+    p.add_argument("--warmup", type=int, default=6,
+                   help="untimed steps first (compilation, and matrix kernels made for the first shapes)")
     ours, trainer_options = p.parse_known_args(argv)
     args = parse_args(
         ["--train", "-", "--val", "-", "--out", os.devnull, "--feature-dim", str(ours.width),

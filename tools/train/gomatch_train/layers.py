@@ -56,9 +56,9 @@ def instance_norm(x: torch.Tensor, valid: torch.Tensor | None = None) -> torch.T
     (B, N) the sets are padded: statistics run over each set's valid rows (`masked_instance_norm`).
     """
     if valid is not None:
-        return masked_instance_norm(x, valid)
+        return masked_instance_norm(at_least_float32(x), valid)
     if torch.is_grad_enabled():
-        return PointMajorInstanceNorm.apply(at_least_float32(x))
+        return PointMajorInstanceNorm.apply(x)
     batch = x if x.dim() == 3 else x.unsqueeze(0)
     normed = F.instance_norm(batch.transpose(1, 2), eps=INSTANCE_NORM_EPS).transpose(1, 2)
     return normed if x.dim() == 3 else normed.squeeze(0)
@@ -100,7 +100,8 @@ class PointMajorInstanceNorm(torch.autograd.Function):
 
 @compilable
 def point_major_norm(x: torch.Tensor):
-    """(normalised x, 1/sigma) over the rows of each set."""
+    """(normalised x, 1/sigma) over the rows of each set, float32 or wider (a bf16 input is cast here)."""
+    x = at_least_float32(x)
     centred = x - x.mean(dim=-2, keepdim=True)
     inv_std = torch.rsqrt(centred.square().mean(dim=-2, keepdim=True) + INSTANCE_NORM_EPS)
     return centred * inv_std, inv_std

@@ -33,6 +33,7 @@ import torch
 from . import compiled, run_state
 from .config import ModelConfig
 from .dataset import load_samples, subsample
+from .encoder import matrices_per_step
 from .evaluate import Totals, assess, assess_batch
 from .export import load_export, save_export
 from .model import GoMatch
@@ -71,9 +72,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--compile", action="store_true",
                    help="torch.compile the hot functions of the training step (CPU: about 1.6x faster; compiles "
                         "for a minute first)")
-    p.add_argument("--bf16", action="store_true",
-                   help="bfloat16 autocast for the network's matrix products (the matching layer and every "
-                        "normalisation stay float32)")
+    p.add_argument("--bf16", action=argparse.BooleanOptionalAction, default=False,
+                   help="bfloat16 autocast for the network's matrix products (the matching layer, every "
+                        "normalisation and, below 512 points per set, the attention stay float32)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--feature-dim", type=int, default=ModelConfig.feature_dim)
     p.add_argument("--encoder-blocks", type=int, default=ModelConfig.encoder_blocks)
@@ -327,11 +328,12 @@ class Run:
         batched pass with --batched). Returns its totals."""
         self.optimizer.zero_grad(set_to_none=True)
         totals = Totals()
-        for chunk in self.forward_chunks(group.share(batch)):
-            outcomes = self.assess_chunk(chunk)
-            (sum(outcome.loss for outcome in outcomes) / len(batch)).backward()
-            for outcome in outcomes:
-                totals.add(outcome)
+        with matrices_per_step(self.model):
+            for chunk in self.forward_chunks(group.share(batch)):
+                outcomes = self.assess_chunk(chunk)
+                (sum(outcome.loss for outcome in outcomes) / len(batch)).backward()
+                for outcome in outcomes:
+                    totals.add(outcome)
         group.sum_gradients(self.model.parameters())
         self.optimizer.step()
         return totals

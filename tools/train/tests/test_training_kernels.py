@@ -11,9 +11,9 @@ import pytest
 import torch
 
 from gomatch_train import compiled
-from gomatch_train.attention import EdgeMaxNorm, MultiHeadAttention, coordinate_neighbours
+from gomatch_train.attention import FLOAT32_ATTENTION_BELOW, EdgeMaxNorm, MultiHeadAttention, coordinate_neighbours
 from gomatch_train.config import ModelConfig
-from gomatch_train.encoder import ResidualBlock
+from gomatch_train.encoder import PointResNet, ResidualBlock, matrices_per_step
 from gomatch_train.evaluate import assess
 from gomatch_train.layers import PointMajorInstanceNorm
 from gomatch_train.model import GoMatch
@@ -101,10 +101,54 @@ def test_folded_residual_block_equals_the_three_layers():
     x = torch.randn(2, 20, 8, dtype=F64)
     with torch.no_grad():
         reference = block(x)
-    folded = block.folded_forward(x)
+    folded = block.folded_forward(x, None, block.folded_matrices())
     torch.testing.assert_close(folded, reference, rtol=0, atol=1e-12)
     folded.sum().backward()
     assert block.preconv[0].weight.grad is not None and block.preconv[0].bias.grad is None
+
+
+def test_matrices_folded_once_per_step_give_the_per_pass_gradients():
+    torch.manual_seed(0)
+    encoder = PointResNet(2, 8, 3).double()
+    inputs = [torch.randn(2, 20, 2, dtype=F64), torch.randn(1, 15, 2, dtype=F64)]
+    upstream = [torch.randn(2, 20, 8, dtype=F64), torch.randn(1, 15, 8, dtype=F64)]
+
+    def per_sample_backward():
+        outputs = []
+        for x, u in zip(inputs, upstream):
+            out = encoder(x)
+            (out * u).sum().backward()
+            outputs.append(out.detach())
+        return outputs
+
+    def gradients():
+        return {name: p.grad.clone() for name, p in encoder.named_parameters() if p.grad is not None}
+
+    expected_outputs = per_sample_backward()
+    expected = gradients()
+    encoder.zero_grad(set_to_none=True)
+    with matrices_per_step(encoder):
+        assert all(m.is_leaf for pair in encoder.step_matrices for m in pair)
+        outputs = per_sample_backward()
+        assert set(gradients()) == {"conv_in.0.weight", "conv_in.0.bias"}  # the blocks' stop at the matrices
+    assert encoder.step_matrices is None
+    got = gradients()
+    assert got.keys() == expected.keys() and "conv_0.preconv.0.weight" in got
+    for name in expected:
+        torch.testing.assert_close(got[name], expected[name], rtol=0, atol=1e-12)
+    for out, ref in zip(outputs, expected_outputs):
+        torch.testing.assert_close(out, ref, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("points", [30, FLOAT32_ATTENTION_BELOW])
+def test_bf16_autocast_attention_stays_close_to_float32(points):
+    torch.manual_seed(1)
+    attention = MultiHeadAttention(32, 4)
+    x, source = torch.randn(1, points, 32), torch.randn(1, points, 32)
+    expected = attention.fused_forward(x, source)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got = attention.fused_forward(x, source)
+    torch.testing.assert_close(got.float(), expected, rtol=0, atol=0.05)
 
 
 def unrolled_scaling_sinkhorn(cost, mu, nu, eps, max_iters):
