@@ -28,7 +28,7 @@ from .synthetic import random_sample
 from .train import Run, configure_cpu, epoch_samples, parse_args
 from . import compiled
 
-STAGE_DEFAULTS = ["--workers", "2", "--threads", "1", "--compile", "--bf16", "--batch", "32"]
+PAPER_STAGE_SETTINGS = ["--workers", "2", "--threads", "1", "--compile", "--bf16", "--batch", "32"]
 DISTINCT_SAMPLES = 16
 
 
@@ -85,7 +85,7 @@ def main(argv=None) -> None:
     ours, trainer_options = p.parse_known_args(argv)
     args = parse_args(
         ["--train", "-", "--val", "-", "--out", os.devnull, "--feature-dim", str(ours.width),
-         "--encoder-blocks", str(ours.encoder_blocks), "--max-points", str(ours.points), *STAGE_DEFAULTS,
+         "--encoder-blocks", str(ours.encoder_blocks), "--max-points", str(ours.points), *PAPER_STAGE_SETTINGS,
          *trainer_options]
     )  # fmt: skip
     args.steps, args.warmup = ours.steps, ours.warmup

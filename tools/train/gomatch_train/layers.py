@@ -56,7 +56,7 @@ def instance_norm(x: torch.Tensor, valid: torch.Tensor | None = None) -> torch.T
     (B, N) the sets are padded: statistics run over each set's valid rows (`masked_instance_norm`).
     """
     if valid is not None:
-        return masked_instance_norm(at_least_float32(x), valid)
+        return masked_instance_norm(x, valid)
     if torch.is_grad_enabled():
         return PointMajorInstanceNorm.apply(x)
     batch = x if x.dim() == 3 else x.unsqueeze(0)
@@ -66,7 +66,9 @@ def instance_norm(x: torch.Tensor, valid: torch.Tensor | None = None) -> torch.T
 
 def masked_instance_norm(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """`instance_norm` of (B, N, C) padded sets, statistics over the rows where `valid` (B, N) is true; a set of
-    one row normalises to zero, as the reference's duplicated single row does. Padding rows stay finite."""
+    one row normalises to zero, as the reference's duplicated single row does. Padding rows stay finite. Statistics
+    in float32 or wider (a bf16 input is cast here)."""
+    x = at_least_float32(x)
     weight = valid.unsqueeze(-1).to(x.dtype)
     count = weight.sum(dim=-2, keepdim=True).clamp_min(1.0)
     mean = (x * weight).sum(dim=-2, keepdim=True) / count
