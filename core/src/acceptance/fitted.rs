@@ -8,67 +8,67 @@ pub(super) type FittedRule = (f32, [f32; 10], f32);
 /// (max_wrong, min_confidence, recall) of each operating point.
 pub(super) type FittedPoints = [(f32, f32, f32); 4];
 
-/// Fitted at N = 128 on 66 training scenes: 5 of 581 accepted wrong (0.9 %), recall 98.8 % (576 of 583);
-/// validation: 3 of 128 accepted wrong (2.3 %), recall 85.0 % (125 of 147).
+/// Fitted at N = 128 on 66 training scenes: 9 of 963 accepted wrong (0.9 %), recall 97.5 % (954 of 978);
+/// validation: 6 of 123 accepted wrong (4.9 %), recall 81.2 % (117 of 144).
 pub(super) const RULE_128: FittedRule = (
-    -9.869138,
+    -12.954733,
     [
-        0.46916658, 0.34894368, 2.7704563, 0.34841615, 1.1474041, 0.09250244, 3.9986725, 3.0158195,
-        -5.579163, 3.1042106,
+        0.5428927, 0.11895809, 4.674659, 1.6221486, 3.5081944, 0.09898266, 3.715195, 3.9033694,
+        -5.139156, 2.97556,
     ],
-    0.5029266,
+    0.60447425,
 );
 
 /// The operating points of [`RULE_128`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_128: FittedPoints = [
-    (0.005, 0.6867169, 0.96569467),
-    (0.01, 0.5029266, 0.9879931),
-    (0.02, 0.4183547, 0.9897084),
-    (0.05, 0.2716441, 0.9948542),
+    (0.005, 0.69925404, 0.9591002),
+    (0.01, 0.60447425, 0.9754601),
+    (0.02, 0.49133617, 0.9836401),
+    (0.05, 0.29489765, 0.993865),
 ];
 
-/// Fitted at N = 256 on 66 training scenes: 6 of 698 accepted wrong (0.9 %), recall 99.0 % (692 of 699);
-/// validation: 1 of 225 accepted wrong (0.4 %), recall 70.2 % (224 of 319).
+/// Fitted at N = 256 on 66 training scenes: 11 of 1157 accepted wrong (1.0 %), recall 98.5 % (1146 of 1163);
+/// validation: 3 of 223 accepted wrong (1.3 %), recall 70.1 % (220 of 314).
 pub(super) const RULE_256: FittedRule = (
-    -13.935395,
+    -13.2814045,
     [
-        0.6815266,
-        0.387866,
-        3.8521204,
-        1.0922189,
-        5.315758,
-        0.113128126,
-        5.1843553,
-        4.341882,
-        -3.9802816,
-        2.5756373,
+        0.6214393,
+        0.27282423,
+        3.329805,
+        0.76809275,
+        5.281188,
+        0.111636795,
+        4.3887935,
+        3.4664645,
+        -4.059145,
+        2.6628332,
     ],
-    0.492905,
+    0.5220712,
 );
 
 /// The operating points of [`RULE_256`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_256: FittedPoints = [
-    (0.005, 0.67576015, 0.96709585),
-    (0.01, 0.492905, 0.9899857),
-    (0.02, 0.38253748, 0.99427754),
-    (0.05, 0.24843766, 1.0),
+    (0.005, 0.7540483, 0.95700777),
+    (0.01, 0.5220712, 0.9853826),
+    (0.02, 0.41997233, 0.99140155),
+    (0.05, 0.2287195, 0.9974205),
 ];
 
-/// Fitted at N = 1024 on 66 training scenes: 7 of 754 accepted wrong (0.9 %), recall 98.0 % (747 of 762);
-/// validation: 0 of 551 accepted wrong (0.0 %), recall 97.9 % (551 of 563).
+/// Fitted at N = 1024 on 66 training scenes: 12 of 1212 accepted wrong (1.0 %), recall 98.2 % (1200 of 1222);
+/// validation: 0 of 548 accepted wrong (0.0 %), recall 98.4 % (548 of 557).
 pub(super) const RULE_1024: FittedRule = (
-    -10.527206,
+    -11.714544,
     [
-        0.63591206, 0.21934073, 2.103642, 0.81632817, 0.24047111, 0.12665299, 6.2953825, 4.7263975,
-        -3.0971363, 2.185878,
+        0.66847044, 0.1035204, 2.4884052, 1.3696667, 2.2445054, 0.10850144, 5.5516095, 3.9374175,
+        -3.5669453, 2.2463245,
     ],
-    0.58011085,
+    0.51977855,
 );
 
 /// The operating points of [`RULE_1024`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_1024: FittedPoints = [
-    (0.005, 0.6837928, 0.96587926),
-    (0.01, 0.58011085, 0.98031497),
-    (0.02, 0.40812445, 0.9908137),
-    (0.05, 0.22866967, 0.996063),
+    (0.005, 0.87789106, 0.9198036),
+    (0.01, 0.51977855, 0.9819967),
+    (0.02, 0.3895952, 0.99018),
+    (0.05, 0.24124195, 0.99509),
 ];
