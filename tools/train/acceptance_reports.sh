@@ -12,7 +12,9 @@
 #   tools/train/acceptance_reports.sh [OUT_DIR]
 #
 # Environment: FRESH=1 also writes OUT_DIR/<name>-fresh.json (`eval --fresh-keypoints`: the query keypoints made
-# to look like a new detector run on the photo) and fits on both, QUERIES per scene (default 25), THREADS (default 1), MODEL (default models/gomatch-int8.bin),
+# to look like a new detector run on the photo) and fits on both, QUERIES per scene (default 50: the threshold
+# rests on the few wrong training poses, which 25 a scene left to a handful; docs/acceptance.md), THREADS
+# (default 1), MODEL (default models/gomatch-int8.bin),
 # BIN (a gomatch-sim binary to use instead of building target/release/gomatch-sim), CAPACITY (the localizer's
 # keypoints per query and points per view, default 1024), CHECK (the validation reports the fitted rule is
 # checked on, default models/eval-all/*-int8.json), EXCLUDE (an extended regular expression of report names
@@ -23,7 +25,7 @@
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/../.." && pwd)
 out=${1:-$repo/models/acceptance/1024/train}
-queries=${QUERIES:-25}
+queries=${QUERIES:-50}
 threads=${THREADS:-1}
 model=${MODEL:-$repo/models/gomatch-int8.bin}
 data="$repo/../shared/data"

@@ -12,10 +12,9 @@
 # Reports of a capacity are reused while models/acceptance/N/model.sha256 names the current model blob and
 # deleted (re-run) when it does not, so run this after every model change and commit models/acceptance and the
 # two generated files. Environment: CAPACITIES (default "128 256 1024"), FIT_ARGS (fit-acceptance flags, default
-# "--max-wrong 0.01": the threshold keeps at most 1 % wrong poses among the accepted training poses), MODEL and
-# THREADS as in acceptance_reports.sh, QUERIES (training queries per scene, default 50: the threshold rests on the
-# few wrong training poses, which 25 a scene left to a handful; docs/acceptance.md), VAL_QUERIES (default 500:
-# every query the protocol offers).
+# "--max-wrong 0.01": the threshold keeps at most 1 % wrong poses among the accepted training poses), MODEL,
+# THREADS and QUERIES (training queries per scene, default 50) as in acceptance_reports.sh, VAL_QUERIES (default
+# 500: every query the protocol offers).
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/../.." && pwd)
 model=${MODEL:-$repo/models/gomatch-int8.bin}
@@ -44,7 +43,7 @@ for n in ${CAPACITIES:-128 256 1024}; do
     done
   done
   FRESH=1 BIN="$bin" MODEL="$model" CAPACITY="$n" CHECK="$dir/validation/*.json" RULE="$dir/rule.json" \
-    FIT_ARGS="--capacity $n ${FIT_ARGS:---max-wrong 0.01}" QUERIES="${QUERIES:-50}" THREADS="${THREADS:-$(nproc)}" \
+    FIT_ARGS="--capacity $n ${FIT_ARGS:---max-wrong 0.01}" THREADS="${THREADS:-$(nproc)}" \
     "$repo/tools/train/acceptance_reports.sh" "$dir/train"
 done
 python3 "$repo/tools/train/render_acceptance.py"
