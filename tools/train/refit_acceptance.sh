@@ -11,8 +11,10 @@
 #
 # Reports of a capacity are reused while models/acceptance/N/model.sha256 names the current model blob and
 # deleted (re-run) when it does not, so run this after every model change and commit models/acceptance and the
-# two generated files. Environment: CAPACITIES (default "128 256 1024"), FIT_ARGS (fit-acceptance flags, default
-# "--max-wrong 0.01": the threshold keeps at most 1 % wrong poses among the accepted training poses), MODEL,
+# two generated files. Environment: CAPACITIES (default "128 256 1024"), MAX_WRONG (per capacity the share of wrong
+# poses the threshold allows among the accepted training poses, default "128:0.005 256:0.0075 1024:0.01": smaller
+# capacities keep a margin for the unseen scenes, docs/acceptance.md), FIT_ARGS (fit-acceptance flags, default
+# "--max-wrong" with that share), MODEL,
 # THREADS and QUERIES (training queries per scene, default 50) as in acceptance_reports.sh, VAL_QUERIES (default
 # 500: every query the protocol offers).
 set -euo pipefail
@@ -23,6 +25,14 @@ data="$repo/../shared/data"
 cargo build --release -q -p gomatch-sim --manifest-path "$repo/Cargo.toml"
 bin="$repo/target/release/gomatch-sim"
 digest=$(sha256sum "$model" | cut -d' ' -f1)
+# The share of MAX_WRONG for capacity $1.
+max_wrong() {
+  for entry in ${MAX_WRONG:-128:0.005 256:0.0075 1024:0.01}; do
+    [ "${entry%%:*}" = "$1" ] && { echo "${entry#*:}"; return; }
+  done
+  echo "no share for capacity $1 in MAX_WRONG" >&2
+  exit 1
+}
 for n in ${CAPACITIES:-128 256 1024}; do
   dir="$repo/models/acceptance/$n"
   if [ "$(cat "$dir/model.sha256" 2>/dev/null)" != "$digest" ]; then
@@ -43,7 +53,7 @@ for n in ${CAPACITIES:-128 256 1024}; do
     done
   done
   FRESH=1 BIN="$bin" MODEL="$model" CAPACITY="$n" CHECK="$dir/validation/*.json" RULE="$dir/rule.json" \
-    FIT_ARGS="--capacity $n ${FIT_ARGS:---max-wrong 0.01}" THREADS="${THREADS:-$(nproc)}" \
+    FIT_ARGS="--capacity $n ${FIT_ARGS:---max-wrong $(max_wrong "$n")}" THREADS="${THREADS:-$(nproc)}" \
     "$repo/tools/train/acceptance_reports.sh" "$dir/train"
 done
 python3 "$repo/tools/train/render_acceptance.py"
