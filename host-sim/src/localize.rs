@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, ensure, Context};
 use clap::{Args as ClapArgs, Parser};
-use gomatch::acceptance::OperatingPoint;
+use gomatch::acceptance::{AcceptanceRule, OperatingPoint};
 use gomatch::localizer::{Failure, MAX_VIEWS};
 use gomatch::map::Map;
 use gomatch::{Camera, Localizer, LocalizerConfig, Model, Pose, Query, ViewSelection};
@@ -66,6 +66,11 @@ pub struct Args {
     /// Number of views nearest to `--prior`.
     #[arg(long, default_value_t = MAX_VIEWS)]
     pub k: usize,
+    /// Accept a pose from this confidence on instead of the threshold of the capacity's
+    /// acceptance rule: a stricter operating point (`docs/evaluation.md`), or 0 to report every
+    /// pose RANSAC-PnP found, with its confidence (`docs/acceptance.md`).
+    #[arg(long)]
+    pub min_confidence: Option<f32>,
     /// Write hloc's results format: `name qw qx qy qz tx ty tz` per localized query.
     #[arg(long)]
     pub results: Option<PathBuf>,
@@ -330,6 +335,7 @@ struct Session<'a> {
     keypoints: KeypointSource,
     camera: Option<Camera>,
     views: ViewChoice,
+    config: LocalizerConfig,
 }
 
 /// The resolved view selection.
@@ -389,7 +395,7 @@ impl Session<'_> {
                     camera,
                 },
                 ViewSelection::ImageIds(&ids),
-                &LocalizerConfig::new(),
+                &self.config,
                 Some(&clock),
             )
             .with_context(|| format!("localizing {}", query.name))?;
@@ -510,6 +516,23 @@ fn view_choice(args: &ViewArgs, k: usize) -> anyhow::Result<ViewChoice> {
     Ok(ViewChoice::Names(args.views.clone()))
 }
 
+/// The localizer's settings: the defaults, with the capacity's acceptance rule at
+/// `min_confidence` when given.
+fn localizer_config(min_confidence: Option<f32>) -> anyhow::Result<LocalizerConfig> {
+    let mut config = LocalizerConfig::new();
+    if let Some(threshold) = min_confidence {
+        ensure!(
+            (0.0..=1.0).contains(&threshold),
+            "--min-confidence must be in 0..=1 (got {threshold})"
+        );
+        config.acceptance = Some(AcceptanceRule {
+            min_confidence: threshold,
+            ..AcceptanceRule::for_capacity(CAPACITY)
+        });
+    }
+    Ok(config)
+}
+
 /// Localizes every query; runs on a thread with room for the localizer's workspace (the
 /// session moves there: a database connection is not shared between threads).
 fn localize_all(session: Session<'_>, queries: &[QuerySpec]) -> anyhow::Result<Vec<QueryOutcome>> {
@@ -564,6 +587,7 @@ pub fn run(args: &Args) -> anyhow::Result<LocalizeReport> {
         keypoints: KeypointSource::open(&args.keypoints)?,
         camera,
         views: view_choice(&args.views, args.k)?,
+        config: localizer_config(args.min_confidence)?,
     };
     let queries = queries(&args.queries)?;
     let per_query = localize_all(session, &queries)?;
@@ -631,6 +655,18 @@ mod tests {
         assert_eq!(pose.translation, Vector3::new(1.0, 2.0, 3.0));
         assert!(parse_pose("1 0 0 0 1 2").is_err());
         assert!(parse_pose("0 0 0 0 1 2 3").is_err());
+    }
+
+    #[test]
+    fn min_confidence_sets_the_threshold_of_the_capacity_rule() {
+        assert_eq!(localizer_config(None).unwrap().acceptance, None);
+        let rule = localizer_config(Some(0.9)).unwrap().acceptance.unwrap();
+        let fitted = AcceptanceRule::for_capacity(CAPACITY);
+        assert_eq!((rule.bias, rule.weights), (fitted.bias, fitted.weights));
+        assert_eq!(rule.min_confidence, 0.9);
+        for bad in [-0.1, 1.5, f32::NAN] {
+            assert!(localizer_config(Some(bad)).is_err(), "{bad}");
+        }
     }
 
     #[test]
