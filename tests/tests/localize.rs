@@ -359,9 +359,21 @@ fn python_with_pycolmap() -> Option<PathBuf> {
 /// Mouse photos the fresh detections must localize (of 56, every photo held out once).
 const FRESH_LOCALIZED: usize = 31;
 
-/// Per query name, the reprojection error of the reported pose (`None`: refused), and the
-/// keypoint count, inliers and confidence, of a `localize` run.
-type Outcomes = BTreeMap<String, (Option<f64>, usize, f64, Option<f32>)>;
+/// What a `localize` run gave one query.
+#[derive(Debug, Clone, Copy)]
+struct Outcome {
+    /// Reprojection error of the reported pose (`None`: refused).
+    error: Option<f64>,
+    /// Keypoints of the query (before the capacity's cap).
+    keypoints: usize,
+    /// RANSAC-PnP inliers.
+    inliers: f64,
+    /// The acceptance rule's confidence.
+    confidence: Option<f32>,
+}
+
+/// Per query name, its [`Outcome`].
+type Outcomes = BTreeMap<String, Outcome>;
 
 /// Localizes the held-out photos of every fold against the map of the others: from the
 /// fresh detections (`fresh_db`), from the stored keypoints, and from the fresh detections
@@ -394,9 +406,13 @@ fn localize_folds(scene: &Scene, model: &str, fresh_db: &str, dir: &Path) -> [Ou
             let report = localize(&[&common[..], &source[..]].concat());
             let errors = score(scene, &report);
             for q in report.per_query {
-                let error = errors[&q.name];
-                let summary = (error, q.keypoints_total, q.counts.inliers, q.confidence);
-                outcomes.insert(q.name, summary);
+                let outcome = Outcome {
+                    error: errors[&q.name],
+                    keypoints: q.keypoints_total,
+                    inliers: q.counts.inliers,
+                    confidence: q.confidence,
+                };
+                outcomes.insert(q.name, outcome);
             }
         }
     }
@@ -448,13 +464,13 @@ fn held_out_photos_with_freshly_detected_keypoints_are_localized_or_refused() {
     let model = model.display().to_string();
     let [fresh, stored, fresh_all] = localize_folds(&scene, &model, &fresh_db, &dir);
     let tally = |outcomes: &Outcomes, what: &str| {
-        for (name, (error, keypoints, inliers, confidence)) in outcomes {
+        for (name, o) in outcomes {
             println!(
-                "{what} {name}: {keypoints} keypoints, {inliers} inliers, confidence {confidence:?}, \
-                 reprojection error {error:?}"
+                "{what} {name}: {} keypoints, {} inliers, confidence {:?}, reprojection error {:?}",
+                o.keypoints, o.inliers, o.confidence, o.error
             );
         }
-        let reported: Vec<f64> = outcomes.values().filter_map(|o| o.0).collect();
+        let reported: Vec<f64> = outcomes.values().filter_map(|o| o.error).collect();
         let right = reported.iter().filter(|&&e| e < 10.0).count();
         (right, reported.len())
     };
@@ -470,13 +486,13 @@ fn held_out_photos_with_freshly_detected_keypoints_are_localized_or_refused() {
     // A lower threshold accepts a superset of the poses.
     assert!(fresh
         .keys()
-        .all(|name| fresh[name].0.is_none() || fresh_all[name].0 == fresh[name].0));
+        .all(|name| fresh[name].error.is_none() || fresh_all[name].error == fresh[name].error));
     assert!(all_right >= fresh_right && all_reported >= fresh_reported);
     assert_eq!(fresh.len(), names.len());
     // The fresh detections are not the reconstruction's keypoints.
     for image in scene.images.values() {
         assert_ne!(
-            fresh[&image.name].1,
+            fresh[&image.name].keypoints,
             image.keypoints.len(),
             "{}",
             image.name
