@@ -14,7 +14,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, ensure, Context};
 use clap::{Args as ClapArgs, Parser};
-use gomatch::acceptance::{AcceptanceRule, OperatingPoint};
+use gomatch::acceptance::{AcceptanceRule, Evidence, OperatingPoint};
+use gomatch::guided::GuidedCounts;
 use gomatch::localizer::{Failure, MAX_VIEWS};
 use gomatch::map::Map;
 use gomatch::{Camera, Localizer, LocalizerConfig, Model, Pose, Query, ViewSelection};
@@ -186,6 +187,12 @@ pub struct QueryOutcome {
     /// ([`OperatingPoint::for_capacity`]: its share of wrong poses among the accepted
     /// training poses, its threshold and recall); `None` when it passes none.
     pub operating_point: Option<OperatingPoint>,
+    /// The acceptance rule's inputs for the best pose ([`Evidence`]; `None` when RANSAC
+    /// found none).
+    pub evidence: Option<Evidence>,
+    /// What guided re-matching did to the best pose: rounds kept, pairs and inliers of the
+    /// last round, pairs by chance.
+    pub guided: GuidedCounts,
     /// Why not, when not localized.
     pub failure: Option<String>,
     /// The typed reason (the core's `Failure`).
@@ -424,6 +431,8 @@ impl Session<'_> {
             operating_point: result.confidence.and_then(|c| {
                 OperatingPoint::strictest_passed(OperatingPoint::for_capacity(CAPACITY), c)
             }),
+            evidence: result.evidence,
+            guided: result.guided,
             failure: result.outcome.err().map(|f| f.to_string()),
             failure_detail: result.outcome.err(),
             counts: result.counts.into(),
@@ -688,6 +697,8 @@ mod tests {
             pose: Some(colmap),
             confidence: Some(0.99),
             operating_point: None,
+            evidence: None,
+            guided: GuidedCounts::default(),
             failure: None,
             failure_detail: None,
             counts: Counts::default(),

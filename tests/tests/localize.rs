@@ -366,8 +366,10 @@ struct Outcome {
     error: Option<f64>,
     /// Keypoints of the query (before the capacity's cap).
     keypoints: usize,
-    /// RANSAC-PnP inliers.
+    /// RANSAC-PnP inliers among the network's matches.
     inliers: f64,
+    /// Inliers of guided re-matching.
+    guided_inliers: u16,
     /// The acceptance rule's confidence.
     confidence: Option<f32>,
 }
@@ -410,6 +412,7 @@ fn localize_folds(scene: &Scene, model: &str, fresh_db: &str, dir: &Path) -> [Ou
                     error: errors[&q.name],
                     keypoints: q.keypoints_total,
                     inliers: q.counts.inliers,
+                    guided_inliers: q.guided.inliers,
                     confidence: q.confidence,
                 };
                 outcomes.insert(q.name, outcome);
@@ -466,8 +469,9 @@ fn held_out_photos_with_freshly_detected_keypoints_are_localized_or_refused() {
     let tally = |outcomes: &Outcomes, what: &str| {
         for (name, o) in outcomes {
             println!(
-                "{what} {name}: {} keypoints, {} inliers, confidence {:?}, reprojection error {:?}",
-                o.keypoints, o.inliers, o.confidence, o.error
+                "{what} {name}: {} keypoints, {} inliers ({} re-matched), confidence {:?}, \
+                 reprojection error {:?}",
+                o.keypoints, o.inliers, o.guided_inliers, o.confidence, o.error
             );
         }
         let reported: Vec<f64> = outcomes.values().filter_map(|o| o.error).collect();
