@@ -14,9 +14,8 @@
 # two generated files. Environment: CAPACITIES (default "128 256 1024"), MAX_WRONG (per capacity the share of wrong
 # poses the threshold allows among the accepted training poses, default "128:0.005 256:0.0075 1024:0.01": smaller
 # capacities keep a margin for the unseen scenes, docs/acceptance.md), FIT_ARGS (fit-acceptance flags, default
-# "--max-wrong" with that share), MODEL,
-# THREADS and QUERIES (training queries per scene, default 50) as in acceptance_reports.sh, VAL_QUERIES (default
-# 500: every query the protocol offers).
+# "--max-wrong" with that share), MODEL, THREADS and QUERIES (training queries per scene, default 50) as in
+# acceptance_reports.sh, VAL_QUERIES (default 500: every query the protocol offers).
 set -euo pipefail
 repo=$(cd "$(dirname "$0")/../.." && pwd)
 model=${MODEL:-$repo/models/gomatch-int8.bin}
@@ -34,6 +33,7 @@ max_wrong() {
   exit 1
 }
 for n in ${CAPACITIES:-128 256 1024}; do
+  share=$(max_wrong "$n")
   dir="$repo/models/acceptance/$n"
   if [ "$(cat "$dir/model.sha256" 2>/dev/null)" != "$digest" ]; then
     rm -rf "$dir/train" "$dir/validation"
@@ -53,7 +53,7 @@ for n in ${CAPACITIES:-128 256 1024}; do
     done
   done
   FRESH=1 BIN="$bin" MODEL="$model" CAPACITY="$n" CHECK="$dir/validation/*.json" RULE="$dir/rule.json" \
-    FIT_ARGS="--capacity $n ${FIT_ARGS:---max-wrong $(max_wrong "$n")}" THREADS="${THREADS:-$(nproc)}" \
+    FIT_ARGS="--capacity $n ${FIT_ARGS:---max-wrong $share}" THREADS="${THREADS:-$(nproc)}" \
     "$repo/tools/train/acceptance_reports.sh" "$dir/train"
 done
 python3 "$repo/tools/train/render_acceptance.py"
