@@ -17,6 +17,12 @@
 //!    pose replaces the current one when it has at least [`MIN_INLIERS`] inliers, otherwise
 //!    the rounds stop.
 //!
+//! A round whose pose has more inliers than the round before runs again at its radius (at
+//! most [`ROUNDS_PER_RADIUS`] times, [`gained_inliers`]): its pose moved, and pairs at the
+//! same radius reach true points the last pose put beyond it. Without the repeat a pose
+//! still a few pixels off when the radius shrinks stays there, as pairing each keypoint with
+//! its nearest projection holds it in place (the iterated closest point's slow convergence).
+//!
 //! Then the chance level: steps 1 and 2 at the last radius with the keypoints shifted by
 //! [`CHANCE_SHIFTS`] pair keypoints with points that do not correspond, as many as the
 //! density of both sets makes coincide; [`chance_inliers`] turns their mean into the inliers
@@ -30,8 +36,10 @@ use serde::{Deserialize, Serialize};
 use crate::error::{Error, Result};
 use crate::pose::{camera_bearing, Pose};
 
-/// Rounds of re-matching, one per search radius.
+/// Search radii of re-matching, each one round or more ([`ROUNDS_PER_RADIUS`]).
 pub const ROUNDS: usize = 4;
+/// Most rounds at one radius ([`gained_inliers`]).
+pub const ROUNDS_PER_RADIUS: usize = 3;
 /// Fewest RANSAC inliers a round's pose needs to replace the pose.
 pub const MIN_INLIERS: usize = 6;
 /// Loosest RANSAC-PnP inlier threshold of the rounds, in pixels
@@ -123,6 +131,12 @@ pub struct GuidedCounts {
     /// [`CHANCE_SHIFTS`] (0 when no round kept a pose).
     #[serde(default)]
     pub chance: u16,
+}
+
+/// Whether a round with `inliers` gained over the round before it (`previous`, `None` for
+/// the first round): then the next round keeps its radius.
+pub fn gained_inliers(previous: Option<usize>, inliers: usize) -> bool {
+    previous.is_some_and(|previous| inliers > previous)
 }
 
 /// Inliers a pose has by chance: `chance_pairs` pairs within `radius` whose residuals spread

@@ -420,7 +420,8 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         Ok(localization)
     }
 
-    /// The rounds of [`guided`]: pairs of each radius, then RANSAC-PnP on them.
+    /// The rounds of [`guided`]: pairs of each radius, then RANSAC-PnP on them; a radius
+    /// runs again while its rounds gain inliers ([`guided::gained_inliers`]).
     fn guide(
         &mut self,
         map: &Map<'_>,
@@ -438,26 +439,27 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             threshold: guided.threshold(config.ransac.threshold, focal),
             ..config.ransac
         };
-        for radius_px in guided.radii_px {
-            self.pair_by_projection(map, selected, &pose, radius_px / focal, [0.0; 2], n)?;
-            let pairs = self.pairs_to_solver_input(map, query, n)?;
-            if pairs < guided::MIN_INLIERS {
-                break;
-            }
-            let bearings = self.bearings.get(..pairs).unwrap_or(&[]);
-            let points = self.points.get(..pairs).unwrap_or(&[]);
-            match estimate_pose(bearings, points, &ransac, &mut self.pnp) {
-                Ok(estimate) if estimate.inlier_count >= guided::MIN_INLIERS => {
-                    pose = estimate.pose;
-                    counts = GuidedCounts {
-                        rounds: counts.rounds.saturating_add(1),
-                        pairs: u16::try_from(pairs).unwrap_or(u16::MAX),
-                        inliers: u16::try_from(estimate.inlier_count).unwrap_or(u16::MAX),
-                        chance: 0,
-                    };
+        let mut previous_inliers = None;
+        'radii: for radius_px in guided.radii_px {
+            for _ in 0..guided::ROUNDS_PER_RADIUS {
+                let radius = radius_px / focal;
+                let Some((round_pose, pairs, inliers)) =
+                    self.guided_round(map, query, selected, &pose, radius, &ransac)?
+                else {
+                    break 'radii;
+                };
+                pose = round_pose;
+                counts = GuidedCounts {
+                    rounds: counts.rounds.saturating_add(1),
+                    pairs: u16::try_from(pairs).unwrap_or(u16::MAX),
+                    inliers: u16::try_from(inliers).unwrap_or(u16::MAX),
+                    chance: 0,
+                };
+                let gained = guided::gained_inliers(previous_inliers, inliers);
+                previous_inliers = Some(inliers);
+                if !gained {
+                    continue 'radii;
                 }
-                Ok(_) | Err(Error::NoPoseFound | Error::DegenerateConfiguration) => break,
-                Err(other) => return Err(other),
             }
         }
         if counts.rounds > 0 {
@@ -465,6 +467,35 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             counts.chance = self.chance_pairs(map, selected, &pose, last, n)?;
         }
         Ok((pose, counts))
+    }
+
+    /// One round of [`guided`] at `radius` (normalised plane) around `pose`: RANSAC-PnP's
+    /// pose on the round's pairs, the number of pairs and its inliers, or `None` when the
+    /// pairs or the inliers are fewer than [`guided::MIN_INLIERS`] (the rounds stop).
+    fn guided_round(
+        &mut self,
+        map: &Map<'_>,
+        query: &Query<'_>,
+        selected: &[u32],
+        pose: &Pose,
+        radius: f64,
+        ransac: &RansacConfig,
+    ) -> Result<Option<(Pose, usize, usize)>> {
+        let n = query.keypoints.len();
+        self.pair_by_projection(map, selected, pose, radius, [0.0; 2], n)?;
+        let pairs = self.pairs_to_solver_input(map, query, n)?;
+        if pairs < guided::MIN_INLIERS {
+            return Ok(None);
+        }
+        let bearings = self.bearings.get(..pairs).unwrap_or(&[]);
+        let points = self.points.get(..pairs).unwrap_or(&[]);
+        match estimate_pose(bearings, points, ransac, &mut self.pnp) {
+            Ok(estimate) if estimate.inlier_count >= guided::MIN_INLIERS => {
+                Ok(Some((estimate.pose, pairs, estimate.inlier_count)))
+            }
+            Ok(_) | Err(Error::NoPoseFound | Error::DegenerateConfiguration) => Ok(None),
+            Err(other) => Err(other),
+        }
     }
 
     /// The chance level of guided re-matching: mean pairs of `pose` at `radius` over the
@@ -1270,6 +1301,42 @@ mod tests {
             .guide(&map, &query, &[0, 1], far, &guided, &config)
             .expect("valid");
         assert_eq!((kept, counts), (far, GuidedCounts::default()));
+    }
+
+    #[test]
+    fn a_round_that_gains_inliers_runs_again_at_its_radius() {
+        let f = fixture();
+        let map = Map::from_bytes(&f.blob).expect("valid map");
+        let truth = pose(0.1);
+        let kp = keypoints(&f, &truth);
+        let query = Query {
+            keypoints: &kp[..CAP],
+            camera: camera(),
+        };
+        // About 10 px off, as above: a first radius of 12 px pairs some keypoints, of 20 px all.
+        let near = Pose::new(
+            Rotation3::from_euler_angles(0.0, 0.01, 0.0) * truth.rotation,
+            truth.translation + Vector3::new(0.05, -0.05, 0.0),
+        );
+        let config = LocalizerConfig::new();
+        let mut l = LOCALIZER.lock().expect("lock");
+        let all = CAP as u16;
+        for (first_radius_px, rounds) in [(12.0, guided::ROUNDS + 1), (20.0, guided::ROUNDS)] {
+            let guided = GuidedConfig {
+                radii_px: [first_radius_px, 6.0, 3.0, 1.5],
+                ..GuidedConfig::new()
+            };
+            let (refined, counts) = l
+                .guide(&map, &query, &[0, 1], near, &guided, &config)
+                .expect("valid");
+            // From 12 px the first round's exact pose pairs every keypoint at 6 px: that
+            // round gained and runs again; from 20 px the first round already has them all.
+            assert_eq!(
+                (usize::from(counts.rounds), counts.pairs, counts.inliers),
+                (rounds, all, all)
+            );
+            assert!(refined.rotation_error_deg(&truth) < 1e-3);
+        }
     }
 
     #[test]

@@ -8,67 +8,67 @@ pub(super) type FittedRule = (f32, [f32; 10], f32);
 /// (max_wrong, min_confidence, recall) of each operating point.
 pub(super) type FittedPoints = [(f32, f32, f32); 4];
 
-/// Fitted at N = 128 on 66 training scenes: 4 of 942 accepted wrong (0.4 %), recall 95.9 % (938 of 978);
-/// validation: 1 of 112 accepted wrong (0.9 %), recall 77.1 % (111 of 144).
+/// Fitted at N = 128 on 66 training scenes: 4 of 955 accepted wrong (0.4 %), recall 96.9 % (951 of 981);
+/// validation: 4 of 123 accepted wrong (3.3 %), recall 81.0 % (119 of 147).
 pub(super) const RULE_128: FittedRule = (
-    -12.954733,
+    -14.04148,
     [
-        0.5428927, 0.11895809, 4.674659, 1.6221486, 3.5081944, 0.09898266, 3.715195, 3.9033694,
-        -5.139156, 2.97556,
+        0.5722117, 0.09400371, 4.740738, 1.5765861, 4.322748, 0.10655747, 3.6336632, 4.2982383,
+        -5.079299, 3.0049171,
     ],
-    0.69925404,
+    0.65963113,
 );
 
 /// The operating points of [`RULE_128`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_128: FittedPoints = [
-    (0.005, 0.69925404, 0.9591002),
-    (0.01, 0.60447425, 0.9754601),
-    (0.02, 0.49133617, 0.9836401),
-    (0.05, 0.29489765, 0.993865),
+    (0.005, 0.65963113, 0.96941894),
+    (0.01, 0.60268, 0.9724771),
+    (0.02, 0.45265627, 0.98572886),
+    (0.05, 0.29503432, 0.99490315),
 ];
 
-/// Fitted at N = 256 on 66 training scenes: 8 of 1146 accepted wrong (0.7 %), recall 97.9 % (1138 of 1163);
-/// validation: 2 of 219 accepted wrong (0.9 %), recall 69.1 % (217 of 314).
+/// Fitted at N = 256 on 66 training scenes: 8 of 1155 accepted wrong (0.7 %), recall 98.1 % (1147 of 1169);
+/// validation: 3 of 240 accepted wrong (1.2 %), recall 75.7 % (237 of 313).
 pub(super) const RULE_256: FittedRule = (
-    -13.2814045,
+    -13.4801,
     [
-        0.6214393,
-        0.27282423,
-        3.329805,
-        0.76809275,
-        5.281188,
-        0.111636795,
-        4.3887935,
-        3.4664645,
-        -4.059145,
-        2.6628332,
+        0.61531645,
+        0.34804034,
+        3.1722171,
+        1.1757296,
+        5.11105,
+        0.094746254,
+        4.3176346,
+        4.061448,
+        -3.971038,
+        2.6783364,
     ],
-    0.6007916,
+    0.59382075,
 );
 
 /// The operating points of [`RULE_256`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_256: FittedPoints = [
-    (0.005, 0.7540483, 0.95700777),
-    (0.01, 0.5220712, 0.9853826),
-    (0.02, 0.41997233, 0.99140155),
-    (0.05, 0.2287195, 0.9974205),
+    (0.005, 0.6851367, 0.97262615),
+    (0.01, 0.5419077, 0.98545766),
+    (0.02, 0.39772183, 0.9923011),
+    (0.05, 0.22068162, 0.9982891),
 ];
 
-/// Fitted at N = 1024 on 66 training scenes: 12 of 1212 accepted wrong (1.0 %), recall 98.2 % (1200 of 1222);
-/// validation: 0 of 548 accepted wrong (0.0 %), recall 98.4 % (548 of 557).
+/// Fitted at N = 1024 on 66 training scenes: 12 of 1228 accepted wrong (1.0 %), recall 99.0 % (1216 of 1228);
+/// validation: 0 of 554 accepted wrong (0.0 %), recall 99.3 % (554 of 558).
 pub(super) const RULE_1024: FittedRule = (
-    -11.714544,
+    -11.302958,
     [
-        0.66847044, 0.1035204, 2.4884052, 1.3696667, 2.2445054, 0.10850144, 5.5516095, 3.9374175,
-        -3.5669453, 2.2463245,
+        0.60249335, 0.13297603, 2.299553, 1.6229806, 0.9163915, 0.12566185, 5.283288, 4.43988,
+        -3.526011, 2.32407,
     ],
-    0.51977855,
+    0.45351318,
 );
 
 /// The operating points of [`RULE_1024`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_1024: FittedPoints = [
-    (0.005, 0.87789106, 0.9198036),
-    (0.01, 0.51977855, 0.9819967),
-    (0.02, 0.3895952, 0.99018),
-    (0.05, 0.24124195, 0.99509),
+    (0.005, 0.7329391, 0.97149837),
+    (0.01, 0.45351318, 0.990228),
+    (0.02, 0.37857518, 0.9918567),
+    (0.05, 0.22265013, 0.99837136),
 ];
