@@ -443,20 +443,20 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         'radii: for radius_px in guided.radii_px {
             for _ in 0..guided::ROUNDS_PER_RADIUS {
                 let radius = radius_px / focal;
-                let Some((round_pose, pairs, inliers)) =
+                let Some(round) =
                     self.guided_round(map, query, selected, &pose, radius, &ransac)?
                 else {
                     break 'radii;
                 };
-                pose = round_pose;
+                pose = round.pose;
                 counts = GuidedCounts {
                     rounds: counts.rounds.saturating_add(1),
-                    pairs: u16::try_from(pairs).unwrap_or(u16::MAX),
-                    inliers: u16::try_from(inliers).unwrap_or(u16::MAX),
+                    pairs: u16::try_from(round.pairs).unwrap_or(u16::MAX),
+                    inliers: u16::try_from(round.inliers).unwrap_or(u16::MAX),
                     chance: 0,
                 };
-                let gained = guided::gained_inliers(previous_inliers, inliers);
-                previous_inliers = Some(inliers);
+                let gained = guided::gained_inliers(previous_inliers, round.inliers);
+                previous_inliers = Some(round.inliers);
                 if !gained {
                     continue 'radii;
                 }
@@ -469,9 +469,8 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         Ok((pose, counts))
     }
 
-    /// One round of [`guided`] at `radius` (normalised plane) around `pose`: RANSAC-PnP's
-    /// pose on the round's pairs, the number of pairs and its inliers, or `None` when the
-    /// pairs or the inliers are fewer than [`guided::MIN_INLIERS`] (the rounds stop).
+    /// One round of [`guided`] at `radius` (normalised plane) around `pose`, or `None` when
+    /// the pairs or the inliers are fewer than [`guided::MIN_INLIERS`] (the rounds stop).
     fn guided_round(
         &mut self,
         map: &Map<'_>,
@@ -480,7 +479,7 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         pose: &Pose,
         radius: f64,
         ransac: &RansacConfig,
-    ) -> Result<Option<(Pose, usize, usize)>> {
+    ) -> Result<Option<GuidedRound>> {
         let n = query.keypoints.len();
         self.pair_by_projection(map, selected, pose, radius, [0.0; 2], n)?;
         let pairs = self.pairs_to_solver_input(map, query, n)?;
@@ -490,9 +489,11 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         let bearings = self.bearings.get(..pairs).unwrap_or(&[]);
         let points = self.points.get(..pairs).unwrap_or(&[]);
         match estimate_pose(bearings, points, ransac, &mut self.pnp) {
-            Ok(estimate) if estimate.inlier_count >= guided::MIN_INLIERS => {
-                Ok(Some((estimate.pose, pairs, estimate.inlier_count)))
-            }
+            Ok(estimate) if estimate.inlier_count >= guided::MIN_INLIERS => Ok(Some(GuidedRound {
+                pose: estimate.pose,
+                pairs,
+                inliers: estimate.inlier_count,
+            })),
             Ok(_) | Err(Error::NoPoseFound | Error::DegenerateConfiguration) => Ok(None),
             Err(other) => Err(other),
         }
@@ -792,6 +793,16 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         }
         Ok(Ok(pose))
     }
+}
+
+/// What one round of guided re-matching gave ([`Localizer::guided_round`]).
+struct GuidedRound {
+    /// RANSAC-PnP's pose on the round's pairs.
+    pose: Pose,
+    /// Pairs of keypoints and projected points.
+    pairs: usize,
+    /// RANSAC-PnP inliers among the pairs.
+    inliers: usize,
 }
 
 /// The pose solver's input for keypoint `keypoint` paired with map point `point`: the
