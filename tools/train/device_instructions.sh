@@ -6,6 +6,10 @@
 #
 #   tools/train/device_instructions.sh WIDTH ENCODER_BLOCKS CLASSIFIER_BLOCKS HEADS SINKHORN_ITERS
 #
+# With VIEW_FEATURES=1 the image carries the map's view features for that model (`gomatch-sim map features`, as
+# the firmware check of .ci/run does for the shipped model): the views' encoder and first self-attention are read,
+# not computed.
+#
 # Prints `instructions, whole query: N` and the per-stage counts. It overwrites firmware/target/cortex-m7.log: run
 # `bash firmware/qemu.sh cortex-m7` again before `firmware/cross_isa.sh`. Needs what firmware/qemu.sh needs
 # (qemu-system-arm, the thumbv7em-none-eabihf target) and the trainer's venv (setup_venv.sh).
@@ -32,9 +36,16 @@ config = ModelConfig(feature_dim=width, encoder_blocks=encoder, classifier_block
 save_export(GoMatch(config), path)
 PY
 )
-cargo build --release -q -p gomatch-tools --manifest-path "$repo/Cargo.toml"
+cargo build --release -q -p gomatch-tools -p gomatch-sim --manifest-path "$repo/Cargo.toml"
 "$repo/target/release/gomatch-tools" convert --input "$work/model.safetensors" --precision int8 \
   --output "$work/model-int8.bin"
+features=()
+if [ -n "${VIEW_FEATURES:-}" ]; then
+  "$repo/target/release/gomatch-sim" map features "$repo/firmware/data/map.bin" --model "$work/model-int8.bin" \
+    --capacity 256 --output "$work/view-features.bin" >/dev/null
+  features=(GOMATCH_FIRMWARE_VIEW_FEATURES="$work/view-features.bin")
+fi
 # The image exits 4 (pose refused) with random weights; the count is what matters here.
-GOMATCH_FIRMWARE_MODEL="$work/model-int8.bin" bash "$repo/firmware/qemu.sh" cortex-m7 >/dev/null 2>&1 || true
+env "${features[@]}" GOMATCH_FIRMWARE_MODEL="$work/model-int8.bin" bash "$repo/firmware/qemu.sh" cortex-m7 \
+  >/dev/null 2>&1 || true
 grep -E '^instructions' "$repo/firmware/target/cortex-m7.log"
