@@ -1303,35 +1303,8 @@ mod tests {
             wide_counts.chance > all / 4 && wide_counts.chance < all,
             "{wide_counts:?}"
         );
-        // A pose that puts no point near a keypoint stays as it was.
-        let far = Pose::new(
-            truth.rotation,
-            truth.translation + Vector3::new(3.0, 0.0, 0.0),
-        );
-        let (kept, counts) = l
-            .guide(&map, &query, &[0, 1], far, &guided, &config)
-            .expect("valid");
-        assert_eq!((kept, counts), (far, GuidedCounts::default()));
-    }
-
-    #[test]
-    fn a_round_that_gains_inliers_runs_again_at_its_radius() {
-        let f = fixture();
-        let map = Map::from_bytes(&f.blob).expect("valid map");
-        let truth = pose(0.1);
-        let kp = keypoints(&f, &truth);
-        let query = Query {
-            keypoints: &kp[..CAP],
-            camera: camera(),
-        };
-        // About 10 px off, as above: a first radius of 12 px pairs some keypoints, of 20 px all.
-        let near = Pose::new(
-            Rotation3::from_euler_angles(0.0, 0.01, 0.0) * truth.rotation,
-            truth.translation + Vector3::new(0.05, -0.05, 0.0),
-        );
-        let config = LocalizerConfig::new();
-        let mut l = LOCALIZER.lock().expect("lock");
-        let all = CAP as u16;
+        // A round that gains inliers over the round before runs again at its radius: a first
+        // radius of 12 px pairs some keypoints with the near pose's points, of 20 px all.
         for (first_radius_px, rounds) in [(12.0, guided::ROUNDS + 1), (20.0, guided::ROUNDS)] {
             let guided = GuidedConfig {
                 radii_px: [first_radius_px, 6.0, 3.0, 1.5],
@@ -1348,6 +1321,15 @@ mod tests {
             );
             assert!(refined.rotation_error_deg(&truth) < 1e-3);
         }
+        // A pose that puts no point near a keypoint stays as it was.
+        let far = Pose::new(
+            truth.rotation,
+            truth.translation + Vector3::new(3.0, 0.0, 0.0),
+        );
+        let (kept, counts) = l
+            .guide(&map, &query, &[0, 1], far, &guided, &config)
+            .expect("valid");
+        assert_eq!((kept, counts), (far, GuidedCounts::default()));
     }
 
     #[test]
