@@ -36,8 +36,8 @@ use serde::{Deserialize, Serialize};
 use crate::error::{Error, Result};
 use crate::pose::{camera_bearing, Pose};
 
-/// Search radii of re-matching, each one round or more ([`ROUNDS_PER_RADIUS`]).
-pub const ROUNDS: usize = 4;
+/// Search radii of re-matching, each searched in one round or more ([`ROUNDS_PER_RADIUS`]).
+pub const RADII: usize = 4;
 /// Most rounds at one radius ([`gained_inliers`]).
 pub const ROUNDS_PER_RADIUS: usize = 3;
 /// Fewest RANSAC inliers a round's pose needs to replace the pose.
@@ -56,7 +56,7 @@ pub const CHANCE_SHIFTS: [[f64; 2]; 4] = [[4.0, 0.0], [-4.0, 0.0], [0.0, 4.0], [
 pub struct GuidedConfig {
     /// Search radius of each round in pixels of the query image (converted with its mean
     /// focal length), largest first.
-    pub radii_px: [f64; ROUNDS],
+    pub radii_px: [f64; RADII],
     /// Cap on RANSAC-PnP's inlier threshold in the rounds, in pixels of the query image
     /// (converted like the radii): the rounds use the matches' threshold on the normalised
     /// plane ([`crate::ransac::RansacConfig::threshold`]) unless it is looser than this. At
@@ -90,7 +90,7 @@ impl GuidedConfig {
 
     /// The last radius on the normalised image plane, with the query's mean focal length.
     pub fn last_radius(&self, focal: f64) -> f64 {
-        self.radii_px[ROUNDS - 1] / focal
+        self.radii_px[RADII - 1] / focal
     }
 
     /// [`chance_inliers`] of `chance_pairs` at the rounds' threshold ([`Self::threshold`] of

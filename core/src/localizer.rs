@@ -1305,7 +1305,7 @@ mod tests {
         );
         // A round that gains inliers over the round before runs again at its radius: a first
         // radius of 12 px pairs some keypoints with the near pose's points, of 20 px all.
-        for (first_radius_px, rounds) in [(12.0, guided::ROUNDS + 1), (20.0, guided::ROUNDS)] {
+        for (first_radius_px, rounds) in [(12.0, guided::RADII + 1), (20.0, guided::RADII)] {
             let guided = GuidedConfig {
                 radii_px: [first_radius_px, 6.0, 3.0, 1.5],
                 ..GuidedConfig::new()

@@ -11,8 +11,9 @@
 #
 # Reports of a capacity are reused while models/acceptance/N/model.sha256 names the current model blob and
 # deleted (re-run) when it does not, so run this after every model change and commit models/acceptance and the
-# two generated files; REFRESH=1 re-runs them all (after a change of the localizer's code, e.g. guided re-matching). Environment: CAPACITIES (default "128 256 1024"), MAX_WRONG (per capacity the share of wrong
-# poses the threshold allows among the accepted training poses, default "128:0.005 256:0.0075 1024:0.01": smaller
+# two generated files; REFRESH=1 re-runs them all (after a change of the localizer's code, e.g. guided
+# re-matching). Environment: CAPACITIES (default "128 256 1024"), MAX_WRONG (per capacity the share of wrong poses
+# the threshold allows among the accepted training poses, default "128:0.005 256:0.0075 1024:0.01": smaller
 # capacities keep a margin for the unseen scenes, docs/acceptance.md), FIT_ARGS (fit-acceptance flags, default
 # "--max-wrong" with that share), MODEL, THREADS and QUERIES (training queries per scene, default 50) as in
 # acceptance_reports.sh, VAL_QUERIES (default 500: every query the protocol offers).
