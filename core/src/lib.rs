@@ -56,7 +56,7 @@ pub use localizer::{
 pub use map::Map;
 pub use matcher::{MatchSet, Matcher, Observer, Stage};
 pub use pose::Pose;
-pub use ransac::{estimate_pose, PnpEstimate, PnpWorkspace, RansacConfig};
+pub use ransac::{estimate_pose, AdaptiveStop, PnpEstimate, PnpWorkspace, RansacConfig};
 pub use sinkhorn::Match;
 pub use weights::{Model, ModelConfig, Precision};
 

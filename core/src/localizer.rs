@@ -31,7 +31,7 @@ use crate::matcher::Matcher;
 use crate::merge;
 pub use crate::merge::Correspondence;
 use crate::pose::{Pose, ProjectionRule};
-use crate::ransac::{estimate_pose, PnpWorkspace, RansacConfig};
+use crate::ransac::{estimate_pose, AdaptiveStop, PnpWorkspace, RansacConfig};
 use crate::sinkhorn::PlanScalar;
 use crate::weights::Model;
 
@@ -166,6 +166,19 @@ impl LocalizerConfig {
             min_inliers: MIN_CORRESPONDENCES,
             acceptance: None,
             guided: Some(GuidedConfig::new()),
+        }
+    }
+
+    /// The RANSAC-PnP settings a localizer of this capacity applies: the configured ones with
+    /// the adaptive stop resolved (the configured one, else [`AdaptiveStop::for_capacity`]).
+    pub const fn ransac_config(&self, capacity: usize) -> RansacConfig {
+        let stop = match self.ransac.stop {
+            Some(stop) => stop,
+            None => AdaptiveStop::for_capacity(capacity),
+        };
+        RansacConfig {
+            stop: Some(stop),
+            ..self.ransac
         }
     }
 
@@ -437,7 +450,7 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         let focal = query.camera.mean_focal();
         let ransac = RansacConfig {
             threshold: guided.threshold(config.ransac.threshold, focal),
-            ..config.ransac
+            ..config.ransac_config(N)
         };
         let mut previous_inliers = None;
         'radii: for radius_px in guided.radii_px {
@@ -716,7 +729,7 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         }
         let bearings = self.bearings.get(..len).unwrap_or(&[]);
         let points = self.points.get(..len).unwrap_or(&[]);
-        match estimate_pose(bearings, points, &config.ransac, &mut self.pnp) {
+        match estimate_pose(bearings, points, &config.ransac_config(N), &mut self.pnp) {
             Ok(estimate) => {
                 localization.counts.inliers = estimate.inlier_count;
                 localization.ransac_iterations = estimate.iterations;
@@ -975,6 +988,29 @@ mod tests {
             Rotation3::from_euler_angles(0.0, 0.05 * x, 0.0),
             Vector3::new(x, 0.0, 0.0),
         )
+    }
+
+    #[test]
+    fn the_adaptive_stop_is_the_capacitys_unless_configured() {
+        let config = LocalizerConfig::new();
+        let stop = |config: &LocalizerConfig, capacity| config.ransac_config(capacity).stop;
+        assert_eq!(stop(&config, 128), Some(AdaptiveStop::Inliers));
+        assert_eq!(stop(&config, 256), Some(AdaptiveStop::Inliers));
+        assert_eq!(stop(&config, 1024), Some(AdaptiveStop::Support));
+        let support = LocalizerConfig {
+            ransac: RansacConfig {
+                stop: Some(AdaptiveStop::Support),
+                ..RansacConfig::new()
+            },
+            ..config
+        };
+        assert_eq!(stop(&support, 256), Some(AdaptiveStop::Support));
+        // Every other setting is the configured one.
+        let resolved = RansacConfig {
+            stop: None,
+            ..config.ransac_config(256)
+        };
+        assert_eq!(resolved, config.ransac);
     }
 
     /// 80 points on a wavy surface about 5 units in front of three views (image ids 10,

@@ -15,8 +15,8 @@
 //!   again while the support grows or the cost drops; the refit of lowest cost competes
 //!   with the best pose.
 //! - Stopping: at `max_iterations` (hard cap), or once `confidence` is reached for the
-//!   inlier ratio estimated by the best pose's support (the inliers at the threshold alone
-//!   undercount the true inliers when the threshold is near the noise level).
+//!   inlier ratio estimated by the best pose's support or its inliers at the threshold
+//!   ([`AdaptiveStop`]; the localizer picks by its capacity, [`AdaptiveStop::for_capacity`]).
 //! - Refinement: Levenberg-Marquardt with a Cauchy loss of scale `threshold` on the best
 //!   pose's support, gathered again after each of three rounds; then the inliers are
 //!   counted once more at the threshold.
@@ -64,6 +64,43 @@ pub struct RansacConfig {
     pub local_optimization: bool,
     /// Refine the final pose on its inliers with Levenberg-Marquardt.
     pub refine: bool,
+    /// What estimates the inlier ratio of the adaptive stop; `None`: [`AdaptiveStop::Support`]
+    /// for [`estimate_pose`], [`AdaptiveStop::for_capacity`] for a localizer.
+    pub stop: Option<AdaptiveStop>,
+}
+
+/// The count of the best pose that estimates the inlier ratio of RANSAC's adaptive stop.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AdaptiveStop {
+    /// The correspondences within the LO radius: with the threshold at the noise level
+    /// only ~40 % of the true inliers pass it, so the support stops sooner at no loss.
+    Support,
+    /// The inliers at the threshold. Where the LO radius spans wrong matches to
+    /// neighbouring points (under a narrow field of view: `colmap/softmurata`'s 5,120 px
+    /// focal length on 640 px images, a 20 px radius) the support stopped sampling after a
+    /// few dozen samples on a wrong pose (docs/evaluation.md, "RANSAC's stop").
+    Inliers,
+}
+
+impl AdaptiveStop {
+    /// The stop of a localizer of this capacity: [`AdaptiveStop::Inliers`] up to 256
+    /// keypoints, where a query's few true matches are easily outnumbered by near misses
+    /// in the support; [`AdaptiveStop::Support`] above (docs/evaluation.md, "RANSAC's stop").
+    pub const fn for_capacity(capacity: usize) -> Self {
+        if capacity <= 256 {
+            Self::Inliers
+        } else {
+            Self::Support
+        }
+    }
+
+    /// The count of a scored hypothesis this stop reads.
+    fn count(self, score: &Score) -> usize {
+        match self {
+            Self::Support => score.support,
+            Self::Inliers => score.inliers,
+        }
+    }
 }
 
 impl Default for RansacConfig {
@@ -73,9 +110,10 @@ impl Default for RansacConfig {
 }
 
 impl RansacConfig {
-    /// 10,000 iterations, threshold `1e-3`, confidence 0.999, seed 0, LO and refinement on.
-    /// (PoseLib caps at 100,000; at 1000 the matcher's outputs, a few correct matches among
-    /// ~300, often went unsampled: docs/evaluation.md, `--ransac-iterations`.)
+    /// 10,000 iterations, threshold `1e-3`, confidence 0.999, seed 0, LO and refinement on,
+    /// the stop by the caller's default. (PoseLib caps at 100,000; at 1000 the matcher's
+    /// outputs, a few correct matches among ~300, often went unsampled: docs/evaluation.md,
+    /// `--ransac-iterations`.)
     pub const fn new() -> Self {
         Self {
             max_iterations: 10_000,
@@ -84,6 +122,7 @@ impl RansacConfig {
             seed: 0,
             local_optimization: true,
             refine: true,
+            stop: None,
         }
     }
 
@@ -350,6 +389,7 @@ impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
                 usize::MAX
             },
         };
+        let stop = self.config.stop.unwrap_or(AdaptiveStop::Support);
         let mut needed = self.config.max_iterations;
         let mut iterations = 0;
         while iterations < needed {
@@ -374,7 +414,7 @@ impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
                     if self.config.local_optimization {
                         bounds.support = bounds.support.max(improved.score.support);
                     }
-                    needed = needed.min(self.iterations_needed(improved.score.support));
+                    needed = needed.min(self.iterations_needed(stop.count(&improved.score)));
                 }
             }
         }
@@ -382,10 +422,10 @@ impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
     }
 
     /// Samples needed to draw an all-inlier sample with the configured confidence when a
-    /// fraction `support / n` of the correspondences are inliers:
+    /// fraction `inliers / n` of the correspondences are inliers:
     /// `log(1 - confidence) / log(1 - ratio^3)`.
-    fn iterations_needed(&self, support: usize) -> u32 {
-        let ratio = support as f64 / self.n as f64;
+    fn iterations_needed(&self, inliers: usize) -> u32 {
+        let ratio = inliers as f64 / self.n as f64;
         let all_inlier_sample = ratio * ratio * ratio;
         if all_inlier_sample >= 1.0 {
             return 0;
@@ -701,6 +741,42 @@ mod tests {
         assert!(estimate.pose.center_error(&scene.pose) < 0.05);
         // About 40% of the true inliers are within a threshold equal to the noise level.
         assert!(estimate.inlier_count > 25, "{}", estimate.inlier_count);
+    }
+
+    /// The inlier stop: correspondences 2-3.5 thresholds off (matches to neighbouring points
+    /// under a narrow field of view) fill the LO radius of any nearby pose, and sampling
+    /// goes on until an all-inlier sample is likely; the support stop ends at once.
+    #[test]
+    fn near_misses_in_the_support_stop_only_the_support_stop() {
+        let config = RansacConfig {
+            stop: Some(AdaptiveStop::Inliers),
+            ..RansacConfig::new()
+        };
+        let mut scene = Scene::new(33, 200, 200, 0.0);
+        let mut rng = SplitMix64::new(7);
+        for bearing in &mut scene.bearings[30..] {
+            let angle = 2.0 * core::f64::consts::PI * rng.unit_f64();
+            let offset = config.threshold * (2.0 + 1.5 * rng.unit_f64());
+            bearing[0] += offset * libm::cos(angle);
+            bearing[1] += offset * libm::sin(angle);
+        }
+        let mut ws = workspace();
+        let estimate = estimate_pose(&scene.bearings, &scene.points, &config, &mut ws).unwrap();
+        // log(1 - 0.999) / log(1 - 0.15^3): the samples that draw three of the 30 inliers.
+        assert!(estimate.iterations >= 2_043, "{}", estimate.iterations);
+        assert_eq!(estimate.inlier_count, 30);
+        // The final refinement's Cauchy loss still weighs the near misses a little.
+        assert!(estimate.pose.rotation_error_deg(&scene.pose) < 0.05);
+        let support = RansacConfig {
+            stop: Some(AdaptiveStop::Support),
+            ..config
+        };
+        let mut other = workspace();
+        let early = estimate_pose(&scene.bearings, &scene.points, &support, &mut ws).unwrap();
+        assert!(early.iterations < 10, "{}", early.iterations);
+        let default = RansacConfig::new();
+        let by_default = estimate_pose(&scene.bearings, &scene.points, &default, &mut other);
+        assert_eq!(by_default.unwrap(), early);
     }
 
     #[test]

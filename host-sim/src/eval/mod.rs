@@ -740,7 +740,7 @@ fn run_workers<const N: usize, S: PlanScalar + Send>(
                             let outcome = match matching {
                                 Matching::Oracle => oracle_outcome(
                                     sample,
-                                    &options.localizer.ransac,
+                                    &options.localizer.ransac_config(N),
                                     &mut workspace,
                                 ),
                                 Matching::Model { model, .. } => localizer_outcome(
