@@ -73,7 +73,7 @@ pub struct RansacConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum AdaptiveStop {
     /// The correspondences within the LO radius: with the threshold at the noise level
-    /// only ~40 % of the true inliers pass it, so the support stops sooner at no loss.
+    /// only ~40 % of the true inliers pass it, so the support stops sooner.
     Support,
     /// The inliers at the threshold. Where the LO radius spans wrong matches to
     /// neighbouring points (under a narrow field of view: `colmap/softmurata`'s 5,120 px
@@ -111,9 +111,9 @@ impl Default for RansacConfig {
 
 impl RansacConfig {
     /// 10,000 iterations, threshold `1e-3`, confidence 0.999, seed 0, LO and refinement on,
-    /// the stop by the caller's default. (PoseLib caps at 100,000; at 1000 the matcher's
-    /// outputs, a few correct matches among ~300, often went unsampled: docs/evaluation.md,
-    /// `--ransac-iterations`.)
+    /// no stop chosen (see [`RansacConfig::stop`]). (PoseLib caps at 100,000; at 1000 the
+    /// matcher's outputs, a few correct matches among ~300, often went unsampled:
+    /// docs/evaluation.md, `--ransac-iterations`.)
     pub const fn new() -> Self {
         Self {
             max_iterations: 10_000,
@@ -422,10 +422,10 @@ impl<'a, 'w, const N: usize> Ransac<'a, 'w, N> {
     }
 
     /// Samples needed to draw an all-inlier sample with the configured confidence when a
-    /// fraction `inliers / n` of the correspondences are inliers:
-    /// `log(1 - confidence) / log(1 - ratio^3)`.
-    fn iterations_needed(&self, inliers: usize) -> u32 {
-        let ratio = inliers as f64 / self.n as f64;
+    /// fraction `count / n` of the correspondences are inliers (`count`: the best pose's
+    /// count that the [`AdaptiveStop`] reads): `log(1 - confidence) / log(1 - ratio^3)`.
+    fn iterations_needed(&self, count: usize) -> u32 {
+        let ratio = count as f64 / self.n as f64;
         let all_inlier_sample = ratio * ratio * ratio;
         if all_inlier_sample >= 1.0 {
             return 0;
