@@ -77,8 +77,8 @@ pub enum AdaptiveStop {
     Support,
     /// The inliers at the threshold. Where the LO radius spans wrong matches to
     /// neighbouring points (under a narrow field of view: `colmap/softmurata`'s 5,120 px
-    /// focal length on 640 px images, a 20 px radius) the support stopped sampling after a
-    /// few dozen samples on a wrong pose (docs/evaluation.md, "RANSAC's stop").
+    /// focal length on 640 px images, a 20 px radius) the support stopped sampling after
+    /// tens to hundreds of samples on a wrong pose (docs/evaluation.md, "RANSAC's stop").
     Inliers,
 }
 
