@@ -11,11 +11,23 @@
 //! (`docs/evaluation.md`, "Guided re-matching").
 //!
 //! A round, on the query's normalised image plane:
+//! 0. [`vote_displacements`], [`voted_displacement`]: the displacement from projected point
+//!    to keypoint that most pairs within the radius share; the keypoints are moved back by
+//!    it in steps 1 and 2 unless it is shorter than RANSAC-PnP's threshold;
 //! 1. [`nearest_points`]: per keypoint, the nearest projected point within the radius;
 //! 2. [`keep_mutual`]: a pair stays when no other keypoint lies closer to its point;
 //! 3. RANSAC-PnP on the pairs (the matches' threshold, at most [`MAX_THRESHOLD_PX`]); its
-//!    pose replaces the current one when it has at least [`MIN_INLIERS`] inliers, otherwise
-//!    the rounds stop.
+//!    pose replaces the current one when it has at least [`MIN_INLIERS`] inliers. When the
+//!    moved keypoints' pairs give no such pose, steps 1-3 run again without the move;
+//!    when those give none either, the rounds stop.
+//!
+//! Step 0 is for dense points (a narrow field of view, many points per view): there a pose
+//! a few pixels off pairs most keypoints with a neighbour of their true point, and RANSAC-PnP
+//! on those pairs keeps the pose where it is, as the pairs were chosen by it. The true pairs
+//! share one displacement (a pose a few pixels off moves the projections nearly alike across
+//! a narrow view) while the chance pairs' spread evenly over the radius, so the true one
+//! stands out in a vote (a Hough transform over displacements: `docs/evaluation.md`,
+//! "Displacement vote").
 //!
 //! A round whose pose has more inliers than the round before runs again at its radius (at
 //! most [`ROUNDS_PER_RADIUS`] times, [`gained_inliers`]): its pose moved, and pairs at the
@@ -50,6 +62,12 @@ pub const UNPAIRED: u32 = u32::MAX;
 /// Shifts of the keypoints, in multiples of the last radius, under which the pose's
 /// projections pair with them by chance only (four directions, beyond the radius).
 pub const CHANCE_SHIFTS: [[f64; 2]; 4] = [[4.0, 0.0], [-4.0, 0.0], [0.0, 4.0], [0.0, -4.0]];
+/// Cells per side of the displacement vote's grid, which spans the square of half-width the
+/// radius ([`vote_displacements`]).
+pub const VOTE_CELLS: usize = 16;
+
+/// Votes per displacement cell, row by row ([`vote_displacements`]).
+pub type Votes = [u16; VOTE_CELLS * VOTE_CELLS];
 
 /// Settings of guided re-matching.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -170,6 +188,69 @@ pub struct Shifted<'a> {
     pub shift: [f64; 2],
 }
 
+/// Step 0, the votes: adds to `votes` the displacement from each of `points` (map index,
+/// world position), projected with `pose`, to each keypoint within `radius` on both axes
+/// (cells of `2 radius / VOTE_CELLS`, saturating). Call once per view.
+pub fn vote_displacements(
+    pose: &Pose,
+    points: impl Iterator<Item = (u32, [f64; 3])>,
+    keypoints: &[[f32; 2]],
+    radius: f64,
+    votes: &mut Votes,
+) {
+    let cell = 2.0 * radius / VOTE_CELLS as f64;
+    for (_, position) in points {
+        let Some(projected) = project(pose, position) else {
+            continue;
+        };
+        for &keypoint in keypoints {
+            let from_corner = |axis: usize| f64::from(keypoint[axis]) - projected[axis] + radius;
+            let (x, y) = (from_corner(0), from_corner(1));
+            if !(x >= 0.0 && y >= 0.0) {
+                continue;
+            }
+            let (column, row) = ((x / cell) as usize, (y / cell) as usize);
+            if column < VOTE_CELLS && row < VOTE_CELLS {
+                if let Some(count) = votes.get_mut(row * VOTE_CELLS + column) {
+                    *count = count.saturating_add(1);
+                }
+            }
+        }
+    }
+}
+
+/// Step 0, the winner: the vote-weighted mean displacement of the 3 x 3 cells with the most
+/// votes (the first such block in row order), or zero when there are no votes or that
+/// displacement is shorter than `dead_zone` (a shift RANSAC-PnP's threshold absorbs).
+pub fn voted_displacement(votes: &Votes, radius: f64, dead_zone: f64) -> [f64; 2] {
+    let cell = 2.0 * radius / VOTE_CELLS as f64;
+    let centre = |index: usize| (index as f64 + 0.5) * cell - radius;
+    let mut best = (0u32, [0.0; 2]);
+    for row in 1..VOTE_CELLS - 1 {
+        for column in 1..VOTE_CELLS - 1 {
+            let (mut total, mut sum) = (0u32, [0.0; 2]);
+            for y in row - 1..=row + 1 {
+                for x in column - 1..=column + 1 {
+                    let count = votes.get(y * VOTE_CELLS + x).copied().unwrap_or(0);
+                    total += u32::from(count);
+                    sum[0] += f64::from(count) * centre(x);
+                    sum[1] += f64::from(count) * centre(y);
+                }
+            }
+            if total > best.0 {
+                let mean = sum.map(|s| s / f64::from(total));
+                best = (total, mean);
+            }
+        }
+    }
+    let [dx, dy] = best.1;
+    if dx * dx + dy * dy < dead_zone * dead_zone {
+        [0.0; 2]
+    } else {
+        [dx, dy]
+    }
+}
+
 /// Step 1: for each keypoint of `keypoints`, the nearest of `points` (map index, world
 /// position) projected with `pose`, if closer than `radius` and than its best so far
 /// (`best_point` / `best_distance`, squared; start them at [`UNPAIRED`] / infinity and call
@@ -241,6 +322,7 @@ pub fn keep_mutual(
 mod tests {
     use super::*;
     use nalgebra::{Rotation3, Vector3};
+    use std::vec::Vec;
 
     fn unshifted(keypoints: &[[f32; 2]]) -> Shifted<'_> {
         Shifted {
@@ -342,6 +424,47 @@ mod tests {
         );
         assert_eq!(best, [1, 2]);
         assert!((distance[1] - 0.05 * 0.05).abs() < 1e-12);
+    }
+
+    /// Points scattered over [-1, 1]^2 on the plane z = 1 (a fixed sequence).
+    fn scattered(count: usize, seed: u64) -> Vec<[f64; 2]> {
+        let mut state = seed;
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        };
+        (0..count).map(|_| [next(), next()]).collect()
+    }
+
+    #[test]
+    fn the_vote_finds_the_displacement_the_true_pairs_share() {
+        // 40 points seen 0.13 right and 0.07 up of where the pose projects them, among 80
+        // keypoints that match nothing; radius 0.4: the vote is right within a cell (0.05),
+        // the chance votes around the winning cells pulling the mean towards their centre.
+        let points = scattered(40, 1);
+        let shift = [0.13, -0.07];
+        let mut keypoints: Vec<[f32; 2]> = points
+            .iter()
+            .map(|p| [(p[0] + shift[0]) as f32, (p[1] + shift[1]) as f32])
+            .collect();
+        keypoints.extend(scattered(80, 2).iter().map(|p| [p[0] as f32, p[1] as f32]));
+        let mut votes: Votes = [0; VOTE_CELLS * VOTE_CELLS];
+        vote_displacements(&identity(), on_plane(&points), &keypoints, 0.4, &mut votes);
+        let [dx, dy] = voted_displacement(&votes, 0.4, 0.01);
+        assert!(
+            (dx - shift[0]).abs() < 0.05 && (dy - shift[1]).abs() < 0.05,
+            "{dx} {dy}"
+        );
+        // A displacement within the dead zone is none.
+        assert_eq!(voted_displacement(&votes, 0.4, 0.2), [0.0; 2]);
+        // Without keypoints within the radius of any point there are no votes.
+        let far: Vec<[f32; 2]> = keypoints.iter().map(|k| [k[0] + 5.0, k[1]]).collect();
+        let mut none: Votes = [0; VOTE_CELLS * VOTE_CELLS];
+        vote_displacements(&identity(), on_plane(&points), &far, 0.4, &mut none);
+        assert!(none.iter().all(|&v| v == 0));
+        assert_eq!(voted_displacement(&none, 0.4, 0.01), [0.0; 2]);
     }
 
     #[test]

@@ -24,7 +24,7 @@ use crate::acceptance::{self, AcceptanceRule, Evidence, PoseSupport};
 use crate::camera::Camera;
 pub use crate::error::Failure;
 use crate::error::{Error, Input, Result};
-use crate::guided::{self, GuidedConfig, GuidedCounts, Shifted, UNPAIRED};
+use crate::guided::{self, GuidedConfig, GuidedCounts, Shifted, Votes, UNPAIRED};
 use crate::limits::MIN_CORRESPONDENCES;
 use crate::map::Map;
 use crate::matcher::Matcher;
@@ -482,8 +482,10 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         Ok((pose, counts))
     }
 
-    /// One round of [`guided`] at `radius` (normalised plane) around `pose`, or `None` when
-    /// the pairs or the inliers are fewer than [`guided::MIN_INLIERS`] (the rounds stop).
+    /// One round of [`guided`] at `radius` (normalised plane) around `pose`: the keypoints
+    /// moved back by the voted displacement ([`Localizer::voted_shift`]), then, when those
+    /// pairs give no pose, unmoved. `None` when the pairs or the inliers are fewer than
+    /// [`guided::MIN_INLIERS`] either way (the rounds stop).
     fn guided_round(
         &mut self,
         map: &Map<'_>,
@@ -494,8 +496,23 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         ransac: &RansacConfig,
     ) -> Result<Option<GuidedRound>> {
         let n = query.keypoints.len();
-        self.pair_by_projection(map, selected, pose, radius, [0.0; 2], n)?;
-        let pairs = self.pairs_to_solver_input(map, query, n)?;
+        let voted = self.voted_shift(map, selected, pose, radius, ransac.threshold, n)?;
+        for shift in [voted, [0.0; 2]] {
+            self.pair_by_projection(map, selected, pose, radius, shift, n)?;
+            let pairs = self.pairs_to_solver_input(map, query, n)?;
+            if let Some(round) = self.solve_pairs(pairs, ransac)? {
+                return Ok(Some(round));
+            }
+            if shift == [0.0; 2] {
+                break;
+            }
+        }
+        Ok(None)
+    }
+
+    /// Step 3 of a guided round: RANSAC-PnP on the first `pairs` entries of the solver
+    /// input; `None` when they or its inliers are fewer than [`guided::MIN_INLIERS`].
+    fn solve_pairs(&mut self, pairs: usize, ransac: &RansacConfig) -> Result<Option<GuidedRound>> {
         if pairs < guided::MIN_INLIERS {
             return Ok(None);
         }
@@ -510,6 +527,39 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             Ok(_) | Err(Error::NoPoseFound | Error::DegenerateConfiguration) => Ok(None),
             Err(other) => Err(other),
         }
+    }
+
+    /// Step 0 of a guided round: the shift of the keypoints (bearings in `network_input`)
+    /// that undoes the displacement most pairs of `pose` within `radius` share
+    /// ([`guided::voted_displacement`]; zero when shorter than `dead_zone`).
+    fn voted_shift(
+        &mut self,
+        map: &Map<'_>,
+        selected: &[u32],
+        pose: &Pose,
+        radius: f64,
+        dead_zone: f64,
+        n: usize,
+    ) -> Result<[f64; 2]> {
+        let mut votes: Votes = [0; guided::VOTE_CELLS * guided::VOTE_CELLS];
+        let keypoints = self.network_input.get(..n).unwrap_or(&[]);
+        let depths = self
+            .bearings
+            .as_flattened_mut()
+            .get_mut(..N)
+            .unwrap_or(&mut []);
+        for &view in selected {
+            let view_pose = map.view(view as usize)?.pose;
+            // The matcher's points of the view, as in the pairing.
+            let positions = map
+                .view_point_positions(view as usize)?
+                .map(|(index, position)| ((index, position), position));
+            let chosen = view_point_bearings(view_pose, positions, N, depths);
+            let points = chosen.map(|(point, _)| point);
+            guided::vote_displacements(pose, points, keypoints, radius, &mut votes);
+        }
+        let [dx, dy] = guided::voted_displacement(&votes, radius, dead_zone);
+        Ok([-dx, -dy])
     }
 
     /// The chance level of guided re-matching: mean pairs of `pose` at `radius` over the
@@ -1339,18 +1389,25 @@ mod tests {
             wide_counts.chance > all / 4 && wide_counts.chance < all,
             "{wide_counts:?}"
         );
-        // A round that gains inliers over the round before runs again at its radius: a first
-        // radius of 12 px pairs some keypoints with the near pose's points, of 20 px all.
-        for (first_radius_px, rounds) in [(12.0, guided::RADII + 1), (20.0, guided::RADII)] {
+        // A round that gains inliers over the round before runs again at its radius. A pose
+        // turned 0.08 rad about the optical axis moves the projections by up to 13 px, each
+        // its own way (no one displacement undoes that): a first radius of 12 px pairs some
+        // keypoints, whose exact pose pairs them all in a second round at 12 px. The near
+        // pose from 20 px pairs them all in the first round.
+        let spun = Pose::new(
+            Rotation3::from_euler_angles(0.0, 0.0, 0.08) * truth.rotation,
+            truth.translation,
+        );
+        for (start, first_radius_px, rounds) in
+            [(spun, 12.0, guided::RADII + 1), (near, 20.0, guided::RADII)]
+        {
             let guided = GuidedConfig {
                 radii_px: [first_radius_px, 6.0, 3.0, 1.5],
                 ..GuidedConfig::new()
             };
             let (refined, counts) = l
-                .guide(&map, &query, &[0, 1], near, &guided, &config)
+                .guide(&map, &query, &[0, 1], start, &guided, &config)
                 .expect("valid");
-            // From 12 px the first round's exact pose pairs every keypoint at 6 px: that
-            // round gained and runs again; from 20 px the first round already has them all.
             assert_eq!(
                 (usize::from(counts.rounds), counts.pairs, counts.inliers),
                 (rounds, all, all)
@@ -1366,6 +1423,40 @@ mod tests {
             .guide(&map, &query, &[0, 1], far, &guided, &config)
             .expect("valid");
         assert_eq!((kept, counts), (far, GuidedCounts::default()));
+    }
+
+    /// Step 0 of guided re-matching ([`guided::voted_displacement`]): a pose whose
+    /// projections sit more than half the spacing of the points away from their keypoints
+    /// pairs most keypoints with a neighbour of their point; the voted displacement moves
+    /// them back first.
+    #[test]
+    fn guided_re_matching_undoes_a_displacement_beyond_half_the_point_spacing() {
+        let f = fixture();
+        let map = Map::from_bytes(&f.blob).expect("valid map");
+        let truth = pose(0.1);
+        let kp = keypoints(&f, &truth);
+        let query = Query {
+            keypoints: &kp[..CAP],
+            camera: camera(),
+        };
+        let near = Pose::new(
+            truth.rotation,
+            truth.translation + Vector3::new(0.18, -0.09, 0.0),
+        );
+        // The near pose's projections lie 15-25 px from their keypoints.
+        let shifted = keypoints(&f, &near);
+        for (a, b) in kp.iter().zip(&shifted).take(CAP) {
+            let d = (a[0] - b[0]).hypot(a[1] - b[1]);
+            assert!((15.0..25.0).contains(&d), "{d}");
+        }
+        let config = LocalizerConfig::new();
+        let mut l = LOCALIZER.lock().expect("lock");
+        let (refined, counts) = l
+            .guide(&map, &query, &[0, 1], near, &GuidedConfig::new(), &config)
+            .expect("valid");
+        assert!(refined.rotation_error_deg(&truth) < 1e-3, "{counts:?}");
+        assert!(refined.translation_error(&truth) < 1e-4);
+        assert_eq!((counts.pairs, counts.inliers), (CAP as u16, CAP as u16));
     }
 
     #[test]

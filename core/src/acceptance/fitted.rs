@@ -8,67 +8,67 @@ pub(super) type FittedRule = (f32, [f32; 10], f32);
 /// (max_wrong, min_confidence, recall) of each operating point.
 pub(super) type FittedPoints = [(f32, f32, f32); 4];
 
-/// Fitted at N = 128 on 66 training scenes: 4 of 954 accepted wrong (0.4 %), recall 96.8 % (950 of 981);
-/// validation: 3 of 125 accepted wrong (2.4 %), recall 77.2 % (122 of 158).
+/// Fitted at N = 128 on 66 training scenes: 4 of 975 accepted wrong (0.4 %), recall 94.8 % (971 of 1024);
+/// validation: 1 of 130 accepted wrong (0.8 %), recall 72.1 % (129 of 179).
 pub(super) const RULE_128: FittedRule = (
-    -14.154532,
+    -13.922684,
     [
-        0.6168146,
-        0.12404278,
-        4.59673,
-        1.9220506,
-        4.0228286,
-        0.055568863,
-        3.816299,
-        4.047017,
-        -4.7723594,
-        3.1681805,
+        0.6456661, 0.29885107, 4.0542073, 1.6852698, 4.75273, 0.08858452, 3.3054266, 3.7748563,
+        -4.868458, 3.2112796,
     ],
-    0.67220575,
+    0.73745364,
 );
 
 /// The operating points of [`RULE_128`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_128: FittedPoints = [
-    (0.005, 0.67220575, 0.9683996),
-    (0.01, 0.56824607, 0.9867482),
-    (0.02, 0.44917366, 0.99490315),
-    (0.05, 0.26911142, 0.9969419),
+    (0.005, 0.73745364, 0.9482422),
+    (0.01, 0.52062905, 0.9902344),
+    (0.02, 0.44151777, 0.9970703),
+    (0.05, 0.26943475, 0.9980469),
 ];
 
-/// Fitted at N = 256 on 66 training scenes: 8 of 1139 accepted wrong (0.7 %), recall 97.8 % (1131 of 1156);
-/// validation: 0 of 260 accepted wrong (0.0 %), recall 76.5 % (260 of 340).
+/// Fitted at N = 256 on 66 training scenes: 8 of 1198 accepted wrong (0.7 %), recall 98.5 % (1190 of 1208);
+/// validation: 1 of 298 accepted wrong (0.3 %), recall 77.7 % (297 of 382).
 pub(super) const RULE_256: FittedRule = (
-    -13.210795,
+    -14.642738,
     [
-        0.61280525, 0.3395854, 3.4011, 1.1320552, 3.3547626, 0.12081669, 4.0482554, 4.5923934,
-        -4.008304, 2.676915,
+        0.607726, 0.3599676, 2.5667822, 1.5320715, 4.3754964, 0.10601199, 3.9381547, 5.73286,
+        -3.4654202, 2.7146528,
     ],
-    0.6040402,
+    0.5975367,
 );
 
 /// The operating points of [`RULE_256`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_256: FittedPoints = [
-    (0.005, 0.71825635, 0.9610727),
-    (0.01, 0.5380404, 0.983564),
-    (0.02, 0.42972124, 0.9930796),
-    (0.05, 0.24680048, 0.9948097),
+    (0.005, 0.6561116, 0.97764903),
+    (0.01, 0.5354889, 0.9892384),
+    (0.02, 0.4242991, 0.9933775),
+    (0.05, 0.20584491, 0.9975166),
 ];
 
-/// Fitted at N = 1024 on 66 training scenes: 12 of 1228 accepted wrong (1.0 %), recall 99.0 % (1216 of 1228);
-/// validation: 0 of 554 accepted wrong (0.0 %), recall 99.3 % (554 of 558).
+/// Fitted at N = 1024 on 66 training scenes: 12 of 1252 accepted wrong (1.0 %), recall 98.6 % (1240 of 1257);
+/// validation: 0 of 557 accepted wrong (0.0 %), recall 99.3 % (557 of 561).
 pub(super) const RULE_1024: FittedRule = (
-    -11.302958,
+    -11.325907,
     [
-        0.60249335, 0.13297603, 2.299553, 1.6229806, 0.9163915, 0.12566185, 5.283288, 4.43988,
-        -3.526011, 2.32407,
+        0.5684141,
+        0.14182533,
+        2.2863288,
+        1.0781302,
+        3.6072378,
+        0.110285334,
+        4.837637,
+        3.0258918,
+        -3.3817797,
+        2.3487186,
     ],
-    0.45351318,
+    0.53844845,
 );
 
 /// The operating points of [`RULE_1024`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_1024: FittedPoints = [
-    (0.005, 0.7329391, 0.97149837),
-    (0.01, 0.45351318, 0.990228),
-    (0.02, 0.37857518, 0.9918567),
-    (0.05, 0.22265013, 0.99837136),
+    (0.005, 0.6878007, 0.97454256),
+    (0.01, 0.53844845, 0.9864757),
+    (0.02, 0.37038696, 0.9904535),
+    (0.05, 0.19058776, 0.99920446),
 ];
