@@ -543,21 +543,9 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
     ) -> Result<[f64; 2]> {
         let mut votes: Votes = [0; guided::VOTE_CELLS * guided::VOTE_CELLS];
         let keypoints = self.network_input.get(..n).unwrap_or(&[]);
-        let depths = self
-            .bearings
-            .as_flattened_mut()
-            .get_mut(..N)
-            .unwrap_or(&mut []);
-        for &view in selected {
-            let view_pose = map.view(view as usize)?.pose;
-            // The matcher's points of the view, as in the pairing.
-            let positions = map
-                .view_point_positions(view as usize)?
-                .map(|(index, position)| ((index, position), position));
-            let chosen = view_point_bearings(view_pose, positions, N, depths);
-            let points = chosen.map(|(point, _)| point);
+        visit_view_points(map, selected, &mut self.bearings, |points| {
             guided::vote_displacements(pose, points, keypoints, radius, &mut votes);
-        }
+        })?;
         let [dx, dy] = guided::voted_displacement(&votes, radius, dead_zone);
         Ok([-dx, -dy])
     }
@@ -605,21 +593,9 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
             .unwrap_or(&mut []);
         best_point.fill(UNPAIRED);
         best_distance.fill(f64::INFINITY);
-        let depths = self
-            .bearings
-            .as_flattened_mut()
-            .get_mut(..N)
-            .unwrap_or(&mut []);
-        for &view in selected {
-            let view_pose = map.view(view as usize)?.pose;
-            // The matcher's points of the view (the same rule), with their positions.
-            let positions = map
-                .view_point_positions(view as usize)?
-                .map(|(index, position)| ((index, position), position));
-            let chosen = view_point_bearings(view_pose, positions, N, depths);
-            let points = chosen.map(|(point, _)| point);
+        visit_view_points(map, selected, &mut self.bearings, |points| {
             guided::nearest_points(pose, points, keypoints, radius, best_point, best_distance);
-        }
+        })?;
         let position = |index: u32| map.point(index as usize).map(|p| p.map(f64::from));
         guided::keep_mutual(pose, keypoints, best_point, best_distance, position)
     }
@@ -856,6 +832,27 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         }
         Ok(Ok(pose))
     }
+}
+
+/// Passes to `visit`, per selected view, the points the matcher saw of it (the same rule,
+/// [`view_point_bearings`] at capacity `CAP`), as map index and world position; `scratch`
+/// holds the rule's depths.
+fn visit_view_points<const CAP: usize>(
+    map: &Map<'_>,
+    selected: &[u32],
+    scratch: &mut [[f64; 2]; CAP],
+    mut visit: impl FnMut(&mut dyn Iterator<Item = (u32, [f64; 3])>),
+) -> Result<()> {
+    let depths = scratch.as_flattened_mut().get_mut(..CAP).unwrap_or(&mut []);
+    for &view in selected {
+        let view_pose = map.view(view as usize)?.pose;
+        let positions = map
+            .view_point_positions(view as usize)?
+            .map(|(index, position)| ((index, position), position));
+        let chosen = view_point_bearings(view_pose, positions, CAP, depths);
+        visit(&mut chosen.map(|(point, _)| point));
+    }
+    Ok(())
 }
 
 /// What one round of guided re-matching gave ([`Localizer::guided_round`]).
@@ -1116,6 +1113,22 @@ mod tests {
             .collect()
     }
 
+    /// The fixture, the true query pose and the keypoints its points project to.
+    fn keypoints_at_truth() -> (Fixture, Pose, Vec<[f32; 2]>) {
+        let f = fixture();
+        let truth = pose(0.1);
+        let kp = keypoints(&f, &truth);
+        (f, truth, kp)
+    }
+
+    /// The query of the first [`CAP`] of `keypoints`, seen by [`camera`].
+    fn first_keypoints(keypoints: &[[f32; 2]]) -> Query<'_> {
+        Query {
+            keypoints: &keypoints[..CAP],
+            camera: camera(),
+        }
+    }
+
     fn with_model<R>(f: impl FnOnce(&Model<'_>) -> R) -> R {
         let mut buf = std::vec![0u8; 64 * 1024];
         let len = blob(&TINY, 5, &mut buf);
@@ -1349,14 +1362,9 @@ mod tests {
     /// once, at its most probable keypoint) and the pose from the merged correspondences.
     #[test]
     fn guided_re_matching_pulls_a_nearby_pose_onto_the_keypoints() {
-        let f = fixture();
+        let (f, truth, kp) = keypoints_at_truth();
         let map = Map::from_bytes(&f.blob).expect("valid map");
-        let truth = pose(0.1);
-        let kp = keypoints(&f, &truth);
-        let query = Query {
-            keypoints: &kp[..CAP],
-            camera: camera(),
-        };
+        let query = first_keypoints(&kp);
         // About 10 px off: less than half the 30 px between neighbouring points.
         let near = Pose::new(
             Rotation3::from_euler_angles(0.0, 0.01, 0.0) * truth.rotation,
@@ -1431,14 +1439,9 @@ mod tests {
     /// them back first.
     #[test]
     fn guided_re_matching_undoes_a_displacement_beyond_half_the_point_spacing() {
-        let f = fixture();
+        let (f, truth, kp) = keypoints_at_truth();
         let map = Map::from_bytes(&f.blob).expect("valid map");
-        let truth = pose(0.1);
-        let kp = keypoints(&f, &truth);
-        let query = Query {
-            keypoints: &kp[..CAP],
-            camera: camera(),
-        };
+        let query = first_keypoints(&kp);
         let near = Pose::new(
             truth.rotation,
             truth.translation + Vector3::new(0.18, -0.09, 0.0),
@@ -1483,15 +1486,10 @@ mod tests {
 
     #[test]
     fn merged_true_matches_give_the_true_pose() {
-        let f = fixture();
+        let (f, truth, kp) = keypoints_at_truth();
         let map = Map::from_bytes(&f.blob).expect("valid map");
-        let truth = pose(0.1);
-        let kp = keypoints(&f, &truth);
         let mut l = LOCALIZER.lock().expect("lock");
-        let query = Query {
-            keypoints: &kp[..CAP],
-            camera: camera(),
-        };
+        let query = first_keypoints(&kp);
         l.set_query(&query).expect("valid");
         l.clear_matches(CAP);
         let mut claim = |keypoint: usize, point: u32, probability: f32| {
@@ -1537,15 +1535,10 @@ mod tests {
     /// is refused with its confidence, kept as the candidate, and no inlier is marked.
     #[test]
     fn a_pose_below_the_confidence_threshold_is_refused() {
-        let f = fixture();
+        let (f, truth, kp) = keypoints_at_truth();
         let map = Map::from_bytes(&f.blob).expect("valid map");
-        let truth = pose(0.1);
-        let kp = keypoints(&f, &truth);
         let mut l = LOCALIZER.lock().expect("lock");
-        let query = Query {
-            keypoints: &kp[..CAP],
-            camera: camera(),
-        };
+        let query = first_keypoints(&kp);
         let mut solve = |acceptance: AcceptanceRule| {
             l.set_query(&query).expect("valid");
             l.clear_matches(CAP);
