@@ -25,7 +25,7 @@
 //! a few pixels off pairs most keypoints with a neighbour of their true point, and RANSAC-PnP
 //! on those pairs keeps the pose where it is, as the pairs were chosen by it. The true pairs
 //! share one displacement (a pose a few pixels off moves the projections nearly alike across
-//! a narrow view) while the chance pairs' spread evenly over the radius, so the true one
+//! a narrow view) while the chance pairs spread evenly over the radius, so the true one
 //! stands out in a vote (a Hough transform over displacements: `docs/evaluation.md`,
 //! "Displacement vote").
 //!
