@@ -321,6 +321,7 @@ pub fn keep_mutual(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::rng::SplitMix64;
     use nalgebra::{Rotation3, Vector3};
     use std::vec::Vec;
 
@@ -428,13 +429,8 @@ mod tests {
 
     /// Points scattered over [-1, 1]^2 on the plane z = 1 (a fixed sequence).
     fn scattered(count: usize, seed: u64) -> Vec<[f64; 2]> {
-        let mut state = seed;
-        let mut next = move || {
-            state = state
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
-        };
+        let mut rng = SplitMix64::new(seed);
+        let mut next = move || 2.0 * rng.unit_f64() - 1.0;
         (0..count).map(|_| [next(), next()]).collect()
     }
 
