@@ -147,6 +147,10 @@ pub struct LocalizerConfig {
     /// ([`guided`]); `None`: the pose is RANSAC-PnP's on the network's matches, as in the
     /// paper (the rules are fitted with re-matching).
     pub guided: Option<GuidedConfig>,
+    /// When the rule refuses the pose, RANSAC-PnP runs once more on the merged matches its
+    /// inliers left out, and that pose, re-matched and judged, replaces it when the rule
+    /// accepts it ([`Localizer::localize`]; `docs/evaluation.md`, "Second attempt").
+    pub second_attempt: bool,
 }
 
 impl Default for LocalizerConfig {
@@ -158,7 +162,7 @@ impl Default for LocalizerConfig {
 impl LocalizerConfig {
     /// [`RansacConfig::new`], `min_matches` and `min_inliers` = [`MIN_CORRESPONDENCES`],
     /// the acceptance rule of the localizer's capacity, guided re-matching with
-    /// [`GuidedConfig::new`].
+    /// [`GuidedConfig::new`], a second attempt after a refusal.
     pub const fn new() -> Self {
         Self {
             ransac: RansacConfig::new(),
@@ -166,6 +170,7 @@ impl LocalizerConfig {
             min_inliers: MIN_CORRESPONDENCES,
             acceptance: None,
             guided: Some(GuidedConfig::new()),
+            second_attempt: true,
         }
     }
 
@@ -254,6 +259,9 @@ pub struct Localization {
     pub candidate: Option<Pose>,
     /// What guided re-matching did to RANSAC-PnP's pose.
     pub guided: GuidedCounts,
+    /// Whether the pose is the second attempt's ([`LocalizerConfig::second_attempt`]; a
+    /// refusal is the first attempt's, with its candidate, evidence and confidence).
+    pub second_attempt: bool,
 }
 
 impl Localization {
@@ -275,6 +283,7 @@ impl Localization {
             confidence: None,
             candidate: None,
             guided: GuidedCounts::default(),
+            second_attempt: false,
         }
     }
 }
@@ -350,7 +359,9 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
     /// Localizes a query against the map (paper sec. 4.1): encodes the keypoints once,
     /// matches them against each selected view's points as bearing vectors (eq. 1),
     /// merges the classifier-accepted matches, estimates the pose with RANSAC-PnP,
-    /// re-matches it by projection ([`guided`]) and judges it ([`acceptance`]).
+    /// re-matches it by projection ([`guided`]) and judges it ([`acceptance`]); a refused
+    /// pose gets a second attempt on the matches its inliers left out
+    /// ([`LocalizerConfig::second_attempt`]).
     ///
     /// Invalid input is an `Err` and nothing runs: a camera with non-finite or
     /// non-positive intrinsics ([`Error::InvalidIntrinsics`]), more keypoints than `N`
@@ -413,10 +424,14 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         };
         if used > 0 {
             let centres = view_centres(map, &selected)?;
-            localization.outcome = match self.solve(config, query, &centres, &mut localization)? {
-                Ok(found) => self.judge(map, &selected, config, query, found, &mut localization)?,
-                Err(failure) => Err(failure),
+            let inputs = PoseInputs {
+                map,
+                selected: &selected,
+                centres: &centres,
+                config,
+                query,
             };
+            self.decide(inputs, &mut localization)?;
         }
         let done = now(clock);
         if clock.is_some() {
@@ -726,15 +741,103 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
     /// map point.
     fn merge(&mut self, map: &Map<'_>, query: &Query<'_>, n: usize) -> Result<()> {
         let kept = merge::merge(self.merged.get_mut(..n.min(N)).unwrap_or(&mut []));
-        let merged = &self.merged[..kept];
+        self.write_solver_input(map, query, kept)?;
+        self.merged_len = kept;
+        Ok(())
+    }
+
+    /// The first `len` merged correspondences as the pose solver's input (bearings, world
+    /// points).
+    fn write_solver_input(&mut self, map: &Map<'_>, query: &Query<'_>, len: usize) -> Result<()> {
+        let merged = self.merged.get(..len).unwrap_or(&[]);
         for (c, (bearing, point)) in merged
             .iter()
             .zip(self.bearings.iter_mut().zip(self.points.iter_mut()))
         {
             (*bearing, *point) = solver_pair(map, query, usize::from(c.keypoint), c.point)?;
         }
-        self.merged_len = kept;
         Ok(())
+    }
+
+    /// The pose of the merged correspondences, or why there is none: one [`Localizer::attempt`],
+    /// and after a refusal the [`Localizer::second_attempt`] when configured. Without a
+    /// pose no correspondence stays marked inlier.
+    fn decide(&mut self, inputs: PoseInputs<'_>, localization: &mut Localization) -> Result<()> {
+        self.attempt(inputs, localization)?;
+        let refused = matches!(localization.outcome, Err(Failure::LowConfidence { .. }));
+        if refused && inputs.config.second_attempt {
+            self.second_attempt(inputs, localization)?;
+        }
+        if localization.outcome.is_err() {
+            for c in self.merged.iter_mut() {
+                c.inlier = false;
+            }
+        }
+        Ok(())
+    }
+
+    /// One attempt at the pose: RANSAC-PnP + LM on the first `merged_len` merged
+    /// correspondences ([`Localizer::solve`]), re-matched and judged ([`Localizer::judge`]);
+    /// sets `localization`'s outcome.
+    fn attempt(&mut self, inputs: PoseInputs<'_>, localization: &mut Localization) -> Result<()> {
+        let PoseInputs {
+            map,
+            selected,
+            centres,
+            config,
+            query,
+        } = inputs;
+        localization.outcome = match self.solve(config, query, centres, localization)? {
+            Ok(found) => self.judge(map, selected, config, query, found, localization)?,
+            Err(failure) => Err(failure),
+        };
+        Ok(())
+    }
+
+    /// The second attempt after a refused pose: RANSAC-PnP on the merged matches that were
+    /// not its inliers, re-matched and judged; it replaces `localization` when the rule
+    /// accepts it. Where the network's few true matches are outnumbered, RANSAC-PnP's best
+    /// pose may be a chance one; without its inliers the true matches' pose can win
+    /// (`docs/evaluation.md`, "Second attempt"). The merged matches keep their order.
+    fn second_attempt(
+        &mut self,
+        inputs: PoseInputs<'_>,
+        localization: &mut Localization,
+    ) -> Result<()> {
+        let len = self.merged_len;
+        let mut second = Localization {
+            second_attempt: true,
+            ..*localization
+        };
+        let attempted = match self.set_aside_inliers(inputs.map, inputs.query) {
+            Ok(others) => {
+                self.merged_len = others;
+                self.attempt(inputs, &mut second)
+            }
+            Err(error) => Err(error),
+        };
+        self.merged_len = len;
+        let merged = self.merged.get_mut(..len).unwrap_or(&mut []);
+        merged.sort_unstable_by_key(|c| c.keypoint);
+        attempted?;
+        if second.outcome.is_ok() {
+            *localization = second;
+        }
+        Ok(())
+    }
+
+    /// Moves the merged correspondences marked inlier behind the others (each part in
+    /// keypoint order, unmarked) and writes the others as the solver's input; returns their
+    /// number.
+    fn set_aside_inliers(&mut self, map: &Map<'_>, query: &Query<'_>) -> Result<usize> {
+        let merged = self.merged.get_mut(..self.merged_len).unwrap_or(&mut []);
+        merged.sort_unstable_by_key(|c| (c.inlier, c.keypoint));
+        let others = merged.iter().take_while(|c| !c.inlier).count();
+        for c in merged.iter_mut() {
+            c.inlier = false;
+        }
+        self.write_solver_input(map, query, others)?;
+        Ok(others)
     }
 
     /// RANSAC-PnP + LM on the merged correspondences: the pose with its [`Evidence`] (the
@@ -787,8 +890,7 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
     }
 
     /// Re-matches RANSAC-PnP's pose by projection ([`guided`], when configured), then
-    /// applies the acceptance rule to the evidence of both; a refused pose keeps no inlier
-    /// marks.
+    /// applies the acceptance rule to the evidence of both.
     fn judge(
         &mut self,
         map: &Map<'_>,
@@ -821,9 +923,6 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         localization.confidence = Some(confidence);
         localization.candidate = Some(pose);
         if !rule.accepts(confidence) {
-            for c in self.merged.iter_mut() {
-                c.inlier = false;
-            }
             return Ok(Err(Failure::LowConfidence {
                 confidence,
                 needed: rule.min_confidence,
@@ -832,6 +931,18 @@ impl<const N: usize, S: PlanScalar> Localizer<N, S> {
         }
         Ok(Ok(pose))
     }
+}
+
+/// What every attempt at the pose reads ([`Localizer::attempt`]).
+#[derive(Clone, Copy)]
+struct PoseInputs<'a> {
+    map: &'a Map<'a>,
+    /// Map indices of the selected views.
+    selected: &'a [u32],
+    /// Their camera centres, by slot.
+    centres: &'a [[f64; 3]],
+    config: &'a LocalizerConfig,
+    query: &'a Query<'a>,
 }
 
 /// Passes to `visit`, per selected view, the points the matcher saw of it (the same rule,
@@ -1127,6 +1238,26 @@ mod tests {
             keypoints: &keypoints[..CAP],
             camera: camera(),
         }
+    }
+
+    /// [`Localizer::decide`] on `l`'s merged matches with view 0 selected.
+    fn decide_with_view_0(
+        l: &mut Localizer<CAP>,
+        map: &Map<'_>,
+        query: &Query<'_>,
+        config: &LocalizerConfig,
+    ) -> Localization {
+        let centres = view_centres(map, &[0]).expect("view 0");
+        let inputs = PoseInputs {
+            map,
+            selected: &[0],
+            centres: &centres,
+            config,
+            query,
+        };
+        let mut localization = Localization::failed(Failure::NoPoseFound);
+        l.decide(inputs, &mut localization).expect("valid");
+        localization
     }
 
     fn with_model<R>(f: impl FnOnce(&Model<'_>) -> R) -> R {
@@ -1551,16 +1682,8 @@ mod tests {
                 acceptance: Some(acceptance),
                 ..LocalizerConfig::new()
             };
-            let mut localization = Localization::failed(Failure::NoPoseFound);
-            let centres = view_centres(&map, &[0]).expect("view 0");
-            let found = l
-                .solve(&config, &query, &centres, &mut localization)
-                .expect("valid")
-                .expect("a pose");
-            let outcome = l
-                .judge(&map, &[0], &config, &query, found, &mut localization)
-                .expect("valid");
-            (outcome, localization, l.inliers().count())
+            let localization = decide_with_view_0(&mut l, &map, &query, &config);
+            (localization.outcome, localization, l.inliers().count())
         };
         // Confidence sigmoid(6 - 1 * views) = sigmoid(3) = 0.953 with three views.
         let rule = |min_confidence| AcceptanceRule {
@@ -1583,7 +1706,9 @@ mod tests {
         let confidence = with_evidence.confidence.expect("scored");
         assert!((confidence - 0.952_574).abs() < 1e-5, "{confidence}");
 
+        // Every match is an inlier of the refused pose: no second attempt is possible.
         let (refused, without_pose, marked) = solve(rule(0.96));
+        assert!(!without_pose.second_attempt);
         assert_eq!(
             refused,
             Err(Failure::LowConfidence {
@@ -1597,6 +1722,67 @@ mod tests {
         assert_eq!(without_pose.evidence, Some(evidence));
         let text = std::format!("{}", refused.unwrap_err());
         assert!(text.starts_with("low confidence: 0.953 < 0.960"), "{text}");
+    }
+
+    /// The second attempt: 40 of 64 keypoints placed where a wrong pose projects their
+    /// points outnumber the 24 of the true pose, so RANSAC-PnP picks the wrong pose; a rule
+    /// that refuses it (confidence falling with the inliers) accepts the true pose that
+    /// RANSAC-PnP finds on the other 24 matches.
+    #[test]
+    fn a_refused_pose_gets_a_second_attempt_on_the_matches_it_left_out() {
+        let f = fixture();
+        let (truth, wrong) = (pose(0.1), pose(0.6));
+        let mut kp = keypoints(&f, &wrong);
+        kp[40..].copy_from_slice(&keypoints(&f, &truth)[40..]);
+        let map = Map::from_bytes(&f.blob).expect("valid map");
+        let query = first_keypoints(&kp);
+        // Confidence sigmoid(14 - 4 ln(inliers)): 0.32 with 40 inliers, 0.78 with 24.
+        let rule = AcceptanceRule {
+            bias: 14.0,
+            weights: [-4.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            min_confidence: 0.5,
+        };
+        let mut l = LOCALIZER.lock().expect("lock");
+        let mut decide = |second_attempt: bool| {
+            l.set_query(&query).expect("valid");
+            l.clear_matches(CAP);
+            for k in 0..CAP {
+                (l.merged[k].point, l.merged[k].probability) = (k as u32, 0.9);
+            }
+            l.merge(&map, &query, CAP).expect("merges");
+            let config = LocalizerConfig {
+                acceptance: Some(rule),
+                guided: None,
+                second_attempt,
+                ..LocalizerConfig::new()
+            };
+            let localization = decide_with_view_0(&mut l, &map, &query, &config);
+            let order: Vec<u16> = l.correspondences().iter().map(|c| c.keypoint).collect();
+            let inliers: Vec<u16> = l.inliers().map(|c| c.keypoint).collect();
+            (localization, order, inliers)
+        };
+        let (refused, order, inliers) = decide(false);
+        assert!(matches!(
+            refused.outcome,
+            Err(Failure::LowConfidence { inliers: 40, .. })
+        ));
+        let candidate = refused.candidate.expect("judged");
+        assert!(candidate.rotation_error_deg(&wrong) < 1e-3);
+        assert!(!refused.second_attempt);
+        assert!(inliers.is_empty());
+        let in_keypoint_order: Vec<u16> = (0..CAP as u16).collect();
+        assert_eq!(order, in_keypoint_order);
+
+        let (second, order, inliers) = decide(true);
+        let pose = second.outcome.expect("the second attempt is accepted");
+        assert!(pose.rotation_error_deg(&truth) < 1e-3);
+        assert!(pose.translation_error(&truth) < 1e-4);
+        assert!(second.second_attempt);
+        assert_eq!(second.counts.inliers, 24);
+        let true_keypoints: Vec<u16> = (40..CAP as u16).collect();
+        assert_eq!(inliers, true_keypoints);
+        // The merged correspondences keep their order.
+        assert_eq!(order, in_keypoint_order);
     }
 
     #[test]

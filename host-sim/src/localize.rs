@@ -193,6 +193,10 @@ pub struct QueryOutcome {
     /// What guided re-matching did to the best pose: rounds kept, pairs and inliers of the
     /// last round, pairs by chance.
     pub guided: GuidedCounts,
+    /// Whether the pose is the second attempt's, RANSAC-PnP on the matches a refused pose's
+    /// inliers left out (`docs/evaluation.md`, "Second attempt"; a refusal is the first's).
+    #[serde(default)]
+    pub second_attempt: bool,
     /// Why not, when not localized.
     pub failure: Option<String>,
     /// The typed reason (the core's `Failure`).
@@ -433,6 +437,7 @@ impl Session<'_> {
             }),
             evidence: result.evidence,
             guided: result.guided,
+            second_attempt: result.second_attempt,
             failure: result.outcome.err().map(|f| f.to_string()),
             failure_detail: result.outcome.err(),
             counts: result.counts.into(),
@@ -699,6 +704,7 @@ mod tests {
             operating_point: None,
             evidence: None,
             guided: GuidedCounts::default(),
+            second_attempt: false,
             failure: None,
             failure_detail: None,
             counts: Counts::default(),

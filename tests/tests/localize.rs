@@ -361,7 +361,7 @@ fn python_with_pycolmap() -> Option<PathBuf> {
 }
 
 /// Mouse photos the fresh detections must localize (of 56, every photo held out once).
-const FRESH_LOCALIZED: usize = 34;
+const FRESH_LOCALIZED: usize = 35;
 
 /// What a `localize` run gave one query.
 #[derive(Debug, Clone, Copy)]
@@ -376,6 +376,8 @@ struct Outcome {
     guided_inliers: u16,
     /// The acceptance rule's confidence.
     confidence: Option<f32>,
+    /// Whether the pose is the second attempt's (after the first was refused).
+    second_attempt: bool,
 }
 
 /// Per query name, its [`Outcome`].
@@ -418,6 +420,7 @@ fn localize_folds(scene: &Scene, model: &str, fresh_db: &str, dir: &Path) -> [Ou
                     inliers: q.counts.inliers,
                     guided_inliers: q.guided.inliers,
                     confidence: q.confidence,
+                    second_attempt: q.second_attempt,
                 };
                 outcomes.insert(q.name, outcome);
             }
@@ -431,9 +434,9 @@ fn localize_folds(scene: &Scene, model: &str, fresh_db: &str, dir: &Path) -> [Ou
 /// counts than the reconstruction's), each photo localized against a map without it (7
 /// folds, `localize --database`), and the same from the keypoints stored in the
 /// reconstruction. No reported pose may be wrong, and the fresh detections must localize at
-/// least 34 of the 56 photos within 10 px: what the shipped model gives (the stored keypoints
-/// localize 35; docs/acceptance.md, "Freshly detected keypoints"). With `--min-confidence 0`
-/// every pose is reported: a superset of the default run's.
+/// least 35 of the 56 photos within 10 px: what the shipped model gives (the stored keypoints
+/// localize 37; docs/acceptance.md, "Freshly detected keypoints"). With `--min-confidence 0`
+/// every first attempt's pose is reported: a superset of the default run's first attempts.
 #[test]
 fn held_out_photos_with_freshly_detected_keypoints_are_localized_or_refused() {
     let manifest = Path::new(env!("CARGO_MANIFEST_DIR"));
@@ -474,8 +477,17 @@ fn held_out_photos_with_freshly_detected_keypoints_are_localized_or_refused() {
         for (name, o) in outcomes {
             println!(
                 "{what} {name}: {} keypoints, {} inliers ({} re-matched), confidence {:?}, \
-                 reprojection error {:?}",
-                o.keypoints, o.inliers, o.guided_inliers, o.confidence, o.error
+                 reprojection error {:?}{}",
+                o.keypoints,
+                o.inliers,
+                o.guided_inliers,
+                o.confidence,
+                o.error,
+                if o.second_attempt {
+                    ", second attempt"
+                } else {
+                    ""
+                }
             );
         }
         let reported: Vec<f64> = outcomes.values().filter_map(|o| o.error).collect();
@@ -491,11 +503,19 @@ fn held_out_photos_with_freshly_detected_keypoints_are_localized_or_refused() {
          {all_right} within 10 px, {all_reported} reported",
         names.len()
     );
-    // A lower threshold accepts a superset of the poses.
+    // A lower threshold accepts a superset of the first attempts' poses (at 0 nothing is
+    // refused, so nothing gets a second attempt).
+    let first = |name: &String| fresh[name].error.is_some() && !fresh[name].second_attempt;
     assert!(fresh
         .keys()
-        .all(|name| fresh[name].error.is_none() || fresh_all[name].error == fresh[name].error));
-    assert!(all_right >= fresh_right && all_reported >= fresh_reported);
+        .filter(|name| first(name))
+        .all(|name| fresh_all[name].error == fresh[name].error));
+    assert!(fresh_all.values().all(|o| !o.second_attempt));
+    let seconds = fresh
+        .keys()
+        .filter(|name| fresh[*name].second_attempt)
+        .count();
+    assert!(all_reported + seconds >= fresh_reported);
     assert_eq!(fresh.len(), names.len());
     // The fresh detections are not the reconstruction's keypoints.
     for image in scene.images.values() {

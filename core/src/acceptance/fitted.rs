@@ -8,67 +8,59 @@ pub(super) type FittedRule = (f32, [f32; 10], f32);
 /// (max_wrong, min_confidence, recall) of each operating point.
 pub(super) type FittedPoints = [(f32, f32, f32); 4];
 
-/// Fitted at N = 128 on 66 training scenes: 4 of 975 accepted wrong (0.4 %), recall 94.8 % (971 of 1024);
-/// validation: 1 of 130 accepted wrong (0.8 %), recall 72.1 % (129 of 179).
+/// Fitted at N = 128 on 66 training scenes: 5 of 1035 accepted wrong (0.5 %), recall 95.8 % (1030 of 1075);
+/// validation: 1 of 141 accepted wrong (0.7 %), recall 72.2 % (140 of 194).
 pub(super) const RULE_128: FittedRule = (
-    -13.922684,
+    -14.355688,
     [
-        0.6456661, 0.29885107, 4.0542073, 1.6852698, 4.75273, 0.08858452, 3.3054266, 3.7748563,
-        -4.868458, 3.2112796,
+        0.5925315, 0.20709834, 3.8645384, 1.6556762, 4.9607954, 0.10249445, 3.1808856, 3.9606042,
+        -4.89541, 3.2600515,
     ],
-    0.73745364,
+    0.7743123,
 );
 
 /// The operating points of [`RULE_128`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_128: FittedPoints = [
-    (0.005, 0.73745364, 0.9482422),
-    (0.01, 0.52062905, 0.9902344),
-    (0.02, 0.44151777, 0.9970703),
-    (0.05, 0.26943475, 0.9980469),
+    (0.005, 0.7743123, 0.95813954),
+    (0.01, 0.564112, 0.99162793),
+    (0.02, 0.45530963, 0.9972093),
+    (0.05, 0.2772333, 0.99813956),
 ];
 
-/// Fitted at N = 256 on 66 training scenes: 8 of 1198 accepted wrong (0.7 %), recall 98.5 % (1190 of 1208);
-/// validation: 1 of 298 accepted wrong (0.3 %), recall 77.7 % (297 of 382).
+/// Fitted at N = 256 on 66 training scenes: 9 of 1260 accepted wrong (0.7 %), recall 99.0 % (1251 of 1263);
+/// validation: 0 of 337 accepted wrong (0.0 %), recall 83.4 % (337 of 404).
 pub(super) const RULE_256: FittedRule = (
-    -14.642738,
+    -15.817186,
     [
-        0.607726, 0.3599676, 2.5667822, 1.5320715, 4.3754964, 0.10601199, 3.9381547, 5.73286,
-        -3.4654202, 2.7146528,
+        0.5134685, 0.29136738, 2.4528773, 1.6555929, 5.083411, 0.1177621, 3.535688, 6.525951,
+        -3.557444, 2.7762897,
     ],
-    0.5975367,
+    0.6251147,
 );
 
 /// The operating points of [`RULE_256`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_256: FittedPoints = [
-    (0.005, 0.6561116, 0.97764903),
-    (0.01, 0.5354889, 0.9892384),
-    (0.02, 0.4242991, 0.9933775),
-    (0.05, 0.20584491, 0.9975166),
+    (0.005, 0.7170827, 0.976247),
+    (0.01, 0.5851994, 0.99049884),
+    (0.02, 0.4075603, 0.9952494),
+    (0.05, 0.20124832, 0.9992082),
 ];
 
-/// Fitted at N = 1024 on 66 training scenes: 12 of 1252 accepted wrong (1.0 %), recall 98.6 % (1240 of 1257);
-/// validation: 0 of 557 accepted wrong (0.0 %), recall 99.3 % (557 of 561).
+/// Fitted at N = 1024 on 66 training scenes: 13 of 1309 accepted wrong (1.0 %), recall 99.1 % (1296 of 1308);
+/// validation: 0 of 568 accepted wrong (0.0 %), recall 99.5 % (568 of 571).
 pub(super) const RULE_1024: FittedRule = (
-    -11.325907,
+    -12.217552,
     [
-        0.5684141,
-        0.14182533,
-        2.2863288,
-        1.0781302,
-        3.6072378,
-        0.110285334,
-        4.837637,
-        3.0258918,
-        -3.3817797,
-        2.3487186,
+        0.49043283, 0.09242638, 1.9450104, 1.2514246, 3.8332179, 0.12150439, 4.2474365, 4.114147,
+        -3.8814085, 2.3480084,
     ],
-    0.53844845,
+    0.56414986,
 );
 
 /// The operating points of [`RULE_1024`]: (max_wrong, min_confidence, recall).
 pub(super) const POINTS_1024: FittedPoints = [
-    (0.005, 0.6878007, 0.97454256),
-    (0.01, 0.53844845, 0.9864757),
-    (0.02, 0.37038696, 0.9904535),
-    (0.05, 0.19058776, 0.99920446),
+    (0.005, 0.7564663, 0.9701835),
+    (0.01, 0.56414986, 0.9908257),
+    (0.02, 0.39359647, 0.9938838),
+    (0.05, 0.18984906, 0.99923545),
 ];

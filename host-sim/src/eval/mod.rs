@@ -119,6 +119,11 @@ pub struct Args {
     /// acceptance rules are fitted with it.
     #[arg(long)]
     pub no_guided: bool,
+    /// Leave out the second attempt after a refused pose (RANSAC-PnP once more on the
+    /// matches its inliers left out, `docs/evaluation.md`, "Second attempt"); the acceptance
+    /// rules are fitted with it.
+    #[arg(long)]
+    pub no_second_attempt: bool,
     /// Query keypoints as a new detector run on the photo would give them
     /// ([`FreshDetection::TYPICAL`]) instead of the reconstruction's own.
     #[arg(long)]
@@ -256,6 +261,10 @@ pub struct QueryResult {
     /// What guided re-matching did to that pose (absent in older reports).
     #[serde(default)]
     pub guided: Option<GuidedCounts>,
+    /// Whether the reported pose is the second attempt's
+    /// ([`gomatch::localizer::Localization::second_attempt`]).
+    #[serde(default)]
+    pub second_attempt: bool,
 }
 
 /// A pose is right when its reprojection error is at most [`WRONG_REPROJECTION_PX`] and
@@ -360,6 +369,10 @@ pub struct Report {
     /// (`false` for the oracle, with `--no-guided`, and in reports written before it).
     #[serde(default)]
     pub guided: bool,
+    /// Whether a refused pose had a second attempt (`false` for the oracle, with
+    /// `--no-second-attempt`, and in reports written before it).
+    #[serde(default)]
+    pub second_attempt: bool,
     /// Whether the query keypoints looked like a fresh detection (`eval --fresh-keypoints`).
     #[serde(default)]
     pub fresh_keypoints: bool,
@@ -464,6 +477,7 @@ pub fn oracle_correspondences(sample: &QuerySample) -> (Vec<[f64; 2]>, Vec<[f64;
 struct Outcome {
     estimate: Option<Pose>,
     guided: Option<GuidedCounts>,
+    second_attempt: bool,
     candidate: Option<Pose>,
     evidence: Option<Evidence>,
     confidence: Option<f32>,
@@ -501,6 +515,7 @@ fn oracle_outcome<const N: usize>(
     Outcome {
         estimate,
         guided: None,
+        second_attempt: false,
         candidate: estimate,
         evidence: None,
         confidence: None,
@@ -565,6 +580,7 @@ fn localizer_outcome<const N: usize, S: PlanScalar>(
     Ok(Outcome {
         estimate: result.outcome.ok(),
         guided: config.guided.and(result.candidate).map(|_| result.guided),
+        second_attempt: result.second_attempt,
         candidate: result.candidate,
         evidence: result.evidence,
         confidence: result.confidence,
@@ -674,6 +690,7 @@ fn score(sample: &QuerySample, outcome: Outcome) -> QueryResult {
         candidate_rotation_deg: candidate_rotation,
         candidate_right: candidate_rotation.map(|r| pose_is_right(candidate_error, r)),
         guided: outcome.guided,
+        second_attempt: outcome.second_attempt,
     }
 }
 
@@ -892,6 +909,7 @@ pub fn evaluate(
         capacity: options.protocol.max_keypoints,
         view_features: !features.is_empty(),
         guided: options.localizer.guided.is_some() && !matches!(matching, Matching::Oracle),
+        second_attempt: options.localizer.second_attempt && !matches!(matching, Matching::Oracle),
         fresh_keypoints: options.protocol.fresh.is_some(),
         seed: options.protocol.seed,
         ransac_max_iterations: options.localizer.ransac.max_iterations,
@@ -1113,6 +1131,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             },
             acceptance: args.acceptance.as_deref().map(read_rule).transpose()?,
             guided: (!args.no_guided).then(GuidedConfig::new),
+            second_attempt: !args.no_second_attempt,
             ..LocalizerConfig::new()
         },
         threads: args.threads,
