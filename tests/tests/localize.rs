@@ -505,16 +505,12 @@ fn held_out_photos_with_freshly_detected_keypoints_are_localized_or_refused() {
     );
     // A lower threshold accepts a superset of the first attempts' poses (at 0 nothing is
     // refused, so nothing gets a second attempt).
-    let first = |name: &String| fresh[name].error.is_some() && !fresh[name].second_attempt;
     assert!(fresh
-        .keys()
-        .filter(|name| first(name))
-        .all(|name| fresh_all[name].error == fresh[name].error));
+        .iter()
+        .filter(|(_, o)| o.error.is_some() && !o.second_attempt)
+        .all(|(name, o)| fresh_all[name].error == o.error));
     assert!(fresh_all.values().all(|o| !o.second_attempt));
-    let seconds = fresh
-        .keys()
-        .filter(|name| fresh[*name].second_attempt)
-        .count();
+    let seconds = fresh.values().filter(|o| o.second_attempt).count();
     assert!(all_reported + seconds >= fresh_reported);
     assert_eq!(fresh.len(), names.len());
     // The fresh detections are not the reconstruction's keypoints.
